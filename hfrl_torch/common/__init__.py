@@ -1,0 +1,1 @@
+"""Shared core: errors, config checks, checkpoints, statistics and logging."""

@@ -1,0 +1,1 @@
+"""The experiment runner between the agents and ``train.py`` / ``evaluate.py``."""

@@ -1,0 +1,146 @@
+"""What ``evaluate.py`` does: play N games of a checkpoint or a named reference policy and report."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import torch
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig, OmegaConf
+from tqdm import tqdm
+
+from hfrl_torch.common.checkpoint import load_checkpoint
+from hfrl_torch.common.errors import ConfigError
+from hfrl_torch.common.stats import summarize
+from hfrl_torch.common.validation import require_int
+from hfrl_torch.envs.tetris.features import DELLACHERIE_WEIGHTS, feature_id, feature_size
+from hfrl_torch.experiment.factories import make_rollout, make_rules, set_threads
+
+NAMED_POLICIES = ("dellacherie", "random")
+
+
+def _tetris_policy(cfg: DictConfig) -> tuple[str, str, torch.Tensor, bool, DictConfig]:
+    """(policy label, feature set, weights, random?, config with the checkpoint's board) of ``policy``."""
+    name = str(cfg.policy)
+    if name == "dellacherie":
+        return name, "dellacherie", torch.tensor(DELLACHERIE_WEIGHTS, dtype=torch.float64), False, cfg
+    if name == "random":
+        w = torch.zeros(feature_size(feature_id("bt"), cfg.domain.width), dtype=torch.float64)
+        return name, "bt", w, True, cfg
+    path = Path(name)
+    if not path.exists():
+        raise ConfigError(
+            f"policy={name!r} is neither a checkpoint nor a run directory nor one of: dellacherie, random"
+        )
+    ckpt = load_checkpoint(path, domain="tetris")
+    policy = ckpt["policy"]
+    # the checkpoint's board and rules, unless this command line sets domain values itself
+    explicit = [o for o in _task_overrides() if o.startswith("domain.")]
+    saved = OmegaConf.create(ckpt["config"])
+    cfg = OmegaConf.merge(cfg, {"domain": saved.domain}, OmegaConf.from_dotlist(explicit))
+    return (
+        ckpt["path"],
+        policy["features"],
+        torch.as_tensor(policy["weights"], dtype=torch.float64),
+        False,
+        cfg,
+    )
+
+
+def _task_overrides() -> list[str]:
+    try:
+        return list(HydraConfig.get().overrides.task)
+    except ValueError:  # called outside a Hydra app (tests)
+        return []
+
+
+def evaluate_tetris(cfg: DictConfig, progress: bool = True) -> dict[str, object]:
+    """Play ``games`` games of ``policy`` and return the summary that evaluate.py prints as JSON."""
+    games = require_int(cfg, "games", 1)
+    threads = set_threads(cfg)
+    label, features, weights, random_policy, cfg = _tetris_policy(cfg)
+    rules = make_rules(cfg)
+    if weights.numel() != feature_size(feature_id(features), rules.width):
+        raise ConfigError(
+            f"policy {label!r} has {weights.numel()} weights for features {features!r}, "
+            f"which need {feature_size(feature_id(features), rules.width)} on a board {rules.width} wide"
+        )
+    rollout = make_rollout(cfg, features=features)
+    gen = torch.Generator().manual_seed(int(cfg.seed))
+    seeds = torch.randint(0, 2**62, (games,), generator=gen, dtype=torch.int64)
+
+    from hfrl_torch.envs.tetris import engine_numba
+
+    lines, pieces = [], []
+    chunk = max(threads, -(-games // 20))  # about 20 progress updates
+    t0 = time.perf_counter()
+    with tqdm(total=games, desc=f"eval {Path(label).name}", unit="game", disable=not progress) as bar:
+        for i in range(0, games, chunk):
+            s = seeds[i : i + chunk]
+            if random_policy:
+                ln, pc, _ = engine_numba.play(
+                    rules,
+                    feature_id(features),
+                    weights,
+                    s,
+                    random_policy=True,
+                    max_pieces=cfg.domain.max_pieces,
+                )
+            else:
+                ln, pc = rollout(weights.expand(len(s), -1), s)
+            lines.append(ln)
+            pieces.append(pc)
+            bar.update(len(s))
+            bar.set_postfix(mean_lines=f"{torch.cat(lines).double().mean():.1f}")
+    elapsed = time.perf_counter() - t0
+    lines_t, pieces_t = torch.cat(lines), torch.cat(pieces)
+    cap = int(cfg.domain.max_pieces)
+    capped = int((pieces_t >= cap).sum()) if cap > 0 else 0
+    s = summarize(lines_t)
+    return {
+        "domain": "tetris",
+        "policy": label,
+        "features": features,
+        "rules": rules.describe(),
+        "board": f"{rules.width}x{rules.height}",
+        "games": games,
+        "mean": s["mean"],
+        "sd": s["sd"],
+        "median": s["median"],
+        "ci95_low": s["ci95_low"],
+        "ci95_high": s["ci95_high"],
+        "max_pieces": cap,
+        "capped_games": capped,
+        "pieces_per_game": float(pieces_t.double().mean()),
+        "placements_per_s": float(pieces_t.sum()) / max(elapsed, 1e-9),
+        "seed": int(cfg.seed),
+    }
+
+
+def format_summary(r: dict[str, object]) -> str:
+    """Human-readable lines above the final JSON line."""
+    ci = f"{r['ci95_low']:.1f}..{r['ci95_high']:.1f}"
+    out = [
+        f"{r['domain']}: {r['policy']} on {r['board']} ({r['rules']} rules, {r['features']} features)",
+        f"  {r['games']} games: mean {r['mean']:.1f} lines per game, 95% CI {ci}, "
+        f"median {r['median']:.1f}, sd {r['sd']:.1f}",
+        f"  {r['pieces_per_game']:.0f} pieces per game, {r['placements_per_s']:.0f} placements/s",
+    ]
+    if r.get("max_pieces"):
+        out.append(
+            f"  games capped at {r['max_pieces']} pieces: {r['capped_games']} of {r['games']} "
+            "reached the cap (their lines are a lower bound)"
+        )
+    return "\n".join(out)
+
+
+def evaluate(cfg: DictConfig) -> dict[str, object]:
+    """Evaluate and print the summary, then one JSON line on stdout."""
+    if cfg.domain.name != "tetris":
+        raise ConfigError(f"domain={cfg.domain.name!r} cannot be evaluated yet; allowed: tetris")
+    result = evaluate_tetris(cfg)
+    print(format_summary(result))
+    print(json.dumps(result), flush=True)
+    return result

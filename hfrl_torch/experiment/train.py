@@ -1,0 +1,96 @@
+"""What ``train.py`` does: set up (or resume) a run directory, then hand over to the agent's loop."""
+
+from __future__ import annotations
+
+import signal
+import sys
+from pathlib import Path
+
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig, OmegaConf
+
+from hfrl_torch.common.checkpoint import LAST, load_checkpoint
+from hfrl_torch.common.errors import ConfigError
+from hfrl_torch.experiment.factories import set_threads, validate_train_config
+from hfrl_torch.experiment.tetris_cem import train_cem
+
+GROUPS = ("domain", "agent", "fusion", "trainer", "logger")
+
+
+def resume_config(cfg: DictConfig, run_dir: Path, checkpoint: dict, overrides: list[str]) -> DictConfig:
+    """The saved config of ``run_dir`` with this command line's value overrides applied.
+
+    Group choices cannot change on resume (a different domain or agent is a new run).
+    """
+    saved = OmegaConf.create(checkpoint["config"])
+    values = []
+    for item in overrides:
+        key, _, value = item.lstrip("+~").partition("=")
+        if key == "resume":
+            continue
+        if key in GROUPS:
+            if OmegaConf.select(saved, f"{key}.name", default=None) not in (value, None) and key != "logger":
+                raise ConfigError(
+                    f"{key}={value!r} differs from the resumed run's {key}; start a new run instead"
+                )
+            continue
+        values.append(f"{key}={value}")
+    OmegaConf.set_struct(saved, True)
+    try:
+        merged = OmegaConf.merge(saved, OmegaConf.from_dotlist(values))
+    except Exception as exc:  # an override naming a key the saved config lacks
+        raise ConfigError(
+            f"cannot apply overrides {values} to the resumed run: {str(exc).splitlines()[0]}"
+        ) from exc
+    merged.resume = str(run_dir)
+    return merged
+
+
+def _interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
+
+
+def train(cfg: DictConfig) -> Path:
+    """Train the configured agent; returns the run directory."""
+    checkpoint = None
+    if cfg.resume:
+        run_dir = Path(cfg.resume)
+        checkpoint = load_checkpoint(run_dir)
+        cfg = resume_config(cfg, run_dir, checkpoint, list(HydraConfig.get().overrides.task))
+    else:
+        run_dir = Path(HydraConfig.get().runtime.output_dir)
+    validate_train_config(cfg)
+    threads = set_threads(cfg)
+    domain, agent = cfg.domain.name, cfg.agent.name
+    if checkpoint is not None and (checkpoint["domain"], checkpoint["agent"]) != (domain, agent):
+        raise ConfigError(f"resume={str(run_dir)!r} holds a {checkpoint['domain']}/{checkpoint['agent']} run")
+    (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+
+    print(f"Run directory: {run_dir}  ({domain}, {agent}, threads={threads})", file=sys.stderr)
+    interrupted = False
+    signal.signal(signal.SIGTERM, _interrupt)  # a scheduler's stop ends the run like Ctrl-C
+    signal.signal(signal.SIGINT, _interrupt)
+    try:
+        final = train_cem(cfg, run_dir, checkpoint)
+    except KeyboardInterrupt:
+        interrupted = True
+        final = {}
+    ckpt = run_dir / "checkpoints" / LAST
+    lines = [""]
+    if interrupted:
+        lines.append("Interrupted. Every finished iteration is saved; continue with:")
+        lines.append(f"  python train.py resume={run_dir}")
+    elif final:
+        low, high = final["eval/mean_policy_lines_ci95_low"], final["eval/mean_policy_lines_ci95_high"]
+        mean = final["eval/mean_policy_lines_mean"]
+        lines.append(f"Done: mean policy {mean:.1f} lines per game (95% CI {low:.1f}..{high:.1f})")
+    lines += [
+        f"Logs and config:  {run_dir}",
+        f"Checkpoint:       {ckpt}",
+        f"TensorBoard:      tensorboard --logdir {run_dir / 'tensorboard'}",
+        f"Evaluate:         python evaluate.py policy={run_dir}",
+    ]
+    print("\n".join(lines), file=sys.stderr)
+    if interrupted:
+        sys.exit(130)
+    return run_dir

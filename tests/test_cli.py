@@ -1,0 +1,108 @@
+"""End-to-end smoke runs of train.py and evaluate.py with tiny budgets, and their one-line errors."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+ROOT = Path(__file__).resolve().parent.parent
+TINY = [
+    "domain.width=6",
+    "domain.height=6",
+    "agent.population=8",
+    "agent.games_per_candidate=2",
+    "agent.eval_games=3",
+]
+
+
+def run(script: str, *args: str, cwd: Path = ROOT) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, str(ROOT / script), *args], cwd=cwd, capture_output=True, text=True, timeout=300
+    )
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory) -> Path:
+    run_dir = tmp_path_factory.mktemp("run") / "r"
+    out = run("train.py", *TINY, "agent.iterations=3", "seed=4", f"hydra.run.dir={run_dir}")
+    assert out.returncode == 0, out.stderr[-2000:]
+    return run_dir
+
+
+def test_train_writes_config_events_checkpoint_and_tells_where(trained):
+    assert (trained / "config.yaml").is_file()
+    assert (trained / ".hydra" / "config.yaml").is_file()
+    assert list((trained / "tensorboard").glob("events.out.tfevents.*"))
+    assert (trained / "checkpoints" / "last.pt").is_file()
+    lines = (trained / "metrics.jsonl").read_text().splitlines()
+    assert [json.loads(x)["iteration"] for x in lines] == [1, 2, 3]
+
+
+def test_evaluate_checkpoint_prints_summary_then_json(trained):
+    out = run("evaluate.py", f"policy={trained}", "games=5", "seed=1")
+    assert out.returncode == 0, out.stderr[-2000:]
+    last = json.loads(out.stdout.strip().splitlines()[-1])
+    for key in ("domain", "policy", "rules", "board", "games", "mean", "median", "ci95_low", "ci95_high"):
+        assert key in last
+    assert last["board"] == "6x6" and last["games"] == 5 and last["rules"] == "simplified"
+    assert last["ci95_low"] <= last["mean"] <= last["ci95_high"]
+    assert "lines per game" in out.stdout
+
+
+def test_evaluate_reference_policies_with_piece_cap():
+    out = run("evaluate.py", "policy=dellacherie", "games=4", "domain.max_pieces=300")
+    assert out.returncode == 0, out.stderr[-2000:]
+    res = json.loads(out.stdout.strip().splitlines()[-1])
+    assert (
+        res["capped_games"] == 4 and res["pieces_per_game"] == 300
+    )  # Dellacherie survives 300 pieces on 10x10
+    assert "reached the cap" in out.stdout
+
+
+def test_resume_continues_and_matches_an_uninterrupted_run(tmp_path):
+    whole, part = tmp_path / "whole", tmp_path / "part"
+    assert run("train.py", *TINY, "agent.iterations=4", f"hydra.run.dir={whole}").returncode == 0
+    assert run("train.py", *TINY, "agent.iterations=2", f"hydra.run.dir={part}").returncode == 0
+    out = run("train.py", f"resume={part}", "agent.iterations=4", f"hydra.run.dir={tmp_path / 'resume_log'}")
+    assert out.returncode == 0, out.stderr[-2000:]
+    a = torch.load(whole / "checkpoints" / "last.pt", weights_only=True)
+    b = torch.load(part / "checkpoints" / "last.pt", weights_only=True)
+    assert b["state"]["iteration"] == 4
+    assert torch.equal(a["state"]["mean"], b["state"]["mean"])
+    assert [h["eval/mean_policy_lines_mean"] for h in a["history"]] == [
+        h["eval/mean_policy_lines_mean"] for h in b["history"]
+    ]
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["domain=nosuch"], "unknown domain 'nosuch'; allowed: "),
+        (["domain.width=3"], "domain.width=3 is invalid: must be an integer in 4..30"),
+        (["nosuchkey=1"], "Could not override 'nosuchkey'"),
+    ],
+)
+def test_bad_input_fails_with_one_clear_line(args, message, tmp_path):
+    out = run("train.py", *args, f"hydra.run.dir={tmp_path}")
+    assert out.returncode == 2
+    err = out.stderr.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: ") and message in err[0], out.stderr
+    assert not (tmp_path / "checkpoints").exists()
+
+
+def test_corrupt_and_wrong_domain_checkpoints_fail_cleanly(trained, tmp_path):
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes((trained / "checkpoints" / "last.pt").read_bytes()[:100])
+    out = run("evaluate.py", f"policy={bad}")
+    assert out.returncode == 2 and "is corrupt" in out.stderr and len(out.stderr.strip().splitlines()) == 1
+    blob = torch.load(trained / "checkpoints" / "last.pt", weights_only=True)
+    blob["domain"] = "keepaway"
+    other = tmp_path / "other.pt"
+    torch.save(blob, other)
+    out = run("evaluate.py", f"policy={other}")
+    assert out.returncode == 2 and "is for domain 'keepaway', not 'tetris'" in out.stderr

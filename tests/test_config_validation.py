@@ -1,0 +1,66 @@
+"""Every config group composes, and bad values fail with one line naming the value and what is allowed."""
+
+from __future__ import annotations
+
+import pytest
+from hydra import compose, initialize_config_dir
+from omegaconf import DictConfig
+
+from hfrl_torch.app import CONF_DIR, check_group_choices
+from hfrl_torch.common.errors import ConfigError, UserError
+from hfrl_torch.experiment.evaluate import evaluate_tetris
+from hfrl_torch.experiment.factories import validate_train_config
+
+
+def _cfg(name: str, *overrides: str) -> DictConfig:
+    with initialize_config_dir(str(CONF_DIR), version_base=None):
+        return compose(name, overrides=list(overrides))
+
+
+def test_defaults_are_valid():
+    validate_train_config(_cfg("train"))
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("domain.width=3", "domain.width=3 is invalid: must be an integer in 4..30"),
+        ("domain.height=2", "domain.height=2 is invalid: must be an integer in 4..1000"),
+        ("domain.features=abc", "domain.features='abc' is invalid; allowed: bt, knox, dellacherie, dt"),
+        ("domain.engine=gpu", "domain.engine='gpu' is invalid; allowed: auto, numba, torch"),
+        ("domain.max_pieces=-1", "domain.max_pieces=-1 is invalid: must be an integer >= 0"),
+        ("domain.bag=maybe", "domain.bag='maybe' is invalid: must be true or false"),
+        ("agent.iterations=-1", "agent.iterations=-1 is invalid: must be an integer >= 1"),
+        ("agent.population=1", "agent.population=1 is invalid: must be an integer >= 2"),
+        ("agent.elite_fraction=1.5", "agent.elite_fraction=1.5 is invalid: must be a number in 0.001..1.0"),
+        ("agent.initial_variance=-2.0", "agent.initial_variance=-2.0 is invalid: must be a number >= 0.0"),
+        ("agent.noise=wild", "agent.noise='wild' is invalid; allowed: constant, decreasing, none"),
+        ("agent.noise_value=-4", "agent.noise_value=-4 is invalid: must be a number >= 0.0"),
+        ("agent.games_per_candidate=0", "agent.games_per_candidate=0 is invalid: must be an integer >= 1"),
+        ("seed=-3", "seed=-3 is invalid: must be an integer in 0.."),
+        ("device=tpu", "device='tpu' is invalid; allowed: cpu, cuda, cuda:N"),
+        ("threads=0", "threads=0 is invalid: must be an integer in 1..256"),
+        ("logger.backend=wandb", "logger.backend='wandb' is invalid; allowed: tensorboard, none"),
+    ],
+)
+def test_bad_values(override, message):
+    with pytest.raises(ConfigError) as info:
+        validate_train_config(_cfg("train", override))
+    assert message in str(info.value) and "\n" not in str(info.value)
+
+
+def test_unknown_group_option_names_the_allowed_ones(capsys):
+    with pytest.raises(SystemExit) as info:
+        check_group_choices(["agent=nosuch"])
+    assert info.value.code == 2
+    assert capsys.readouterr().err.strip() == "error: unknown agent 'nosuch'; allowed: cem"
+    check_group_choices(["domain=tetris", "domain.width=8", "-m"])  # valid ones pass
+
+
+def test_evaluate_rejects_bad_values_and_plays_random():
+    with pytest.raises(ConfigError, match="games=0 is invalid"):
+        evaluate_tetris(_cfg("evaluate", "games=0"), progress=False)
+    with pytest.raises(UserError, match="neither a checkpoint nor a run directory"):
+        evaluate_tetris(_cfg("evaluate", "policy=/no/such/dir"), progress=False)
+    res = evaluate_tetris(_cfg("evaluate", "policy=random", "games=20"), progress=False)
+    assert res["mean"] < 1.0 and res["games"] == 20 and res["policy"] == "random"

@@ -1,0 +1,22 @@
+"""Train an agent: ``python train.py domain=tetris agent=cem`` (see ``conf/train.yaml``)."""
+
+from __future__ import annotations
+
+import sys
+
+import hydra
+from omegaconf import DictConfig
+
+from hfrl_torch.app import check_overrides, guarded
+from hfrl_torch.experiment.train import train
+
+
+@hydra.main(version_base=None, config_path="conf", config_name="train")
+@guarded
+def main(cfg: DictConfig) -> None:
+    train(cfg)
+
+
+if __name__ == "__main__":
+    check_overrides(sys.argv[1:], "train")
+    main()
