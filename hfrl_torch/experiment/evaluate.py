@@ -75,6 +75,8 @@ def evaluate_tetris(cfg: DictConfig, progress: bool = True) -> dict[str, object]
 
     lines, pieces = [], []
     chunk = max(threads, -(-games // 20))  # about 20 progress updates
+    warm = make_rollout(OmegaConf.merge(cfg, {"domain": {"max_pieces": 1}}), features=features)
+    warm(weights.expand(1, -1), seeds[:1])  # load the compiled kernels before timing
     t0 = time.perf_counter()
     with tqdm(total=games, desc=f"eval {Path(label).name}", unit="game", disable=not progress) as bar:
         for i in range(0, games, chunk):

@@ -7,6 +7,7 @@ Cells are (row, col) with row 0 the piece's bottom row.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -78,6 +79,7 @@ class PlacementTable:
     cells: np.ndarray  # [7, A, 4, 2] (row, col) of the four cells, col absolute
 
 
+@functools.lru_cache(maxsize=64)
 def placement_table(width: int) -> PlacementTable:
     """Build the placement table of all seven pieces for a board ``width`` columns wide."""
     per_piece: list[list[tuple[int, tuple[tuple[int, int], ...]]]] = []
