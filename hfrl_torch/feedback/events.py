@@ -1,0 +1,158 @@
+"""Feedback events and the thread-safe queue that carries them from a trainer to the training loop.
+
+A producer (the browser trainer, a simulated trainer, a log replay) pushes timestamped events from its own
+thread; the training loop drains whatever has arrived once per step, without blocking.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+import threading
+from collections import deque
+from dataclasses import asdict, dataclass
+from typing import Any, Literal
+
+__all__ = [
+    "MAX_ABS_FEEDBACK",
+    "FeedbackEvent",
+    "FeedbackQueue",
+    "FeedbackQueueClosedError",
+    "FeedbackQueueFullError",
+]
+
+MAX_ABS_FEEDBACK = 1e3
+
+
+def _is_real(x: object) -> bool:
+    return isinstance(x, numbers.Real) and not isinstance(x, bool)
+
+
+def _is_int(x: object) -> bool:
+    return isinstance(x, numbers.Integral) and not isinstance(x, bool)
+
+
+@dataclass(frozen=True)
+class FeedbackEvent:
+    """One piece of feedback from a trainer (TAMER's scalar h: usually +1 good, -1 bad; silence is no event).
+
+    :param time: wall-clock seconds when it was given (``time.time()``); credit assignment works on it.
+    :param value: the feedback, finite, within [-1e3, 1e3].
+    :param source: who gave it, e.g. ``"human:browser"``, ``"simulated:oracle"``, ``"replay"``.
+    :param session: the training session; ``""`` = not yet assigned (``FeedbackLog.append`` fills it in).
+    :param step: the agent step it was given at; -1 = not yet known.
+    :param episode: the episode it was given in; -1 = not yet known.
+    """
+
+    time: float
+    value: float
+    source: str
+    session: str = ""
+    step: int = -1
+    episode: int = -1
+
+    def __post_init__(self) -> None:
+        if not (_is_real(self.time) and math.isfinite(self.time)):
+            raise ValueError(f"FeedbackEvent.time must be finite wall-clock seconds, got {self.time!r}")
+        if not (_is_real(self.value) and math.isfinite(self.value) and abs(self.value) <= MAX_ABS_FEEDBACK):
+            raise ValueError(
+                f"FeedbackEvent.value must be a finite number within [-{MAX_ABS_FEEDBACK:g}, "
+                f"{MAX_ABS_FEEDBACK:g}], got {self.value!r}"
+            )
+        if not (isinstance(self.source, str) and self.source.strip()):
+            raise ValueError(f"FeedbackEvent.source must be a non-empty string, got {self.source!r}")
+        if not isinstance(self.session, str):
+            raise ValueError(f"FeedbackEvent.session must be a string, got {self.session!r}")
+        for name in ("step", "episode"):
+            v = getattr(self, name)
+            if not (_is_int(v) and v >= -1):
+                raise ValueError(f"FeedbackEvent.{name} must be an integer >= 0 (or -1 = unknown), got {v!r}")
+        object.__setattr__(self, "time", float(self.time))
+        object.__setattr__(self, "value", float(self.value))
+        object.__setattr__(self, "step", int(self.step))
+        object.__setattr__(self, "episode", int(self.episode))
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-able fields, in the order the feedback log writes them."""
+        d = asdict(self)
+        return {k: d[k] for k in ("time", "step", "episode", "value", "source", "session")}
+
+
+class FeedbackQueueFullError(RuntimeError):
+    """A bounded ``FeedbackQueue`` with ``overflow="error"`` was full."""
+
+
+class FeedbackQueueClosedError(RuntimeError):
+    """``put`` on a ``FeedbackQueue`` after ``close``."""
+
+
+class FeedbackQueue:
+    """Thread-safe FIFO of ``FeedbackEvent`` between producer threads and the training loop.
+
+    Bounded to ``maxsize`` events. When full, ``overflow="drop_oldest"`` (the default) discards the oldest
+    waiting event and counts it in ``dropped``: a stalled loop must not block or crash the trainer's UI
+    thread, and the newest feedback is the one credit assignment can still use (old events fall out of the
+    delay window anyway). ``overflow="error"`` raises ``FeedbackQueueFullError`` instead.
+    After ``close()``, ``put`` raises ``FeedbackQueueClosedError`` and ``drain`` still returns what is left.
+    """
+
+    def __init__(
+        self, maxsize: int = 10_000, overflow: Literal["drop_oldest", "error"] = "drop_oldest"
+    ) -> None:
+        if not (_is_int(maxsize) and maxsize >= 1):
+            raise ValueError(f"FeedbackQueue maxsize must be an integer >= 1, got {maxsize!r}")
+        if overflow not in ("drop_oldest", "error"):
+            raise ValueError(f"FeedbackQueue overflow must be 'drop_oldest' or 'error', got {overflow!r}")
+        self.maxsize = int(maxsize)
+        self.overflow = overflow
+        self._events: deque[FeedbackEvent] = deque()
+        self._cond = threading.Condition(threading.Lock())
+        self._closed = False
+        self._dropped = 0
+
+    def put(self, event: FeedbackEvent) -> None:
+        """Add one event (from any thread); never blocks."""
+        if not isinstance(event, FeedbackEvent):
+            raise TypeError(f"FeedbackQueue.put takes a FeedbackEvent, got {type(event).__name__}")
+        with self._cond:
+            if self._closed:
+                raise FeedbackQueueClosedError("the feedback queue is closed; no more events are accepted")
+            if len(self._events) >= self.maxsize:
+                if self.overflow == "error":
+                    raise FeedbackQueueFullError(
+                        f"the feedback queue is full ({self.maxsize} events not yet drained)"
+                    )
+                self._events.popleft()
+                self._dropped += 1
+            self._events.append(event)
+            self._cond.notify_all()
+
+    def drain(self, timeout: float | None = None) -> list[FeedbackEvent]:
+        """Take every waiting event, oldest first. Returns at once unless ``timeout`` (seconds) is given, in
+        which case it waits up to that long for at least one event (or ``close``)."""
+        with self._cond:
+            if timeout is not None and not self._events and not self._closed:
+                self._cond.wait_for(lambda: bool(self._events) or self._closed, timeout=timeout)
+            events = list(self._events)
+            self._events.clear()
+            return events
+
+    def close(self) -> None:
+        """Refuse further events and wake any waiting ``drain``; idempotent."""
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+
+    @property
+    def closed(self) -> bool:
+        """Whether ``close`` has been called."""
+        return self._closed
+
+    @property
+    def dropped(self) -> int:
+        """How many events ``drop_oldest`` discarded so far."""
+        return self._dropped
+
+    def __len__(self) -> int:
+        with self._cond:
+            return len(self._events)
