@@ -37,8 +37,13 @@ def batched_values(weights: torch.Tensor, features: torch.Tensor) -> torch.Tenso
 def greedy_placement(
     values: torch.Tensor, mask: torch.Tensor, terminal: torch.Tensor | None = None
 ) -> torch.Tensor:
-    """Index of the best valid placement (the first on ties); game-ending ones only as a last resort."""
-    v = values.masked_fill(~mask, -torch.inf)
+    """Index of the best valid placement (the first on ties).
+
+    Game-ending placements count only when every valid placement ends the game; then the best of
+    them is taken (its lines still score).
+    """
+    keep = mask
     if terminal is not None:
-        v = v - terminal.to(v.dtype) * 1e30
-    return v.argmax(-1)
+        safe = mask & ~terminal
+        keep = torch.where(safe.any(-1, keepdim=True), safe, mask)
+    return values.masked_fill(~keep, -torch.inf).argmax(-1)

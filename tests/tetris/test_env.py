@@ -140,3 +140,12 @@ def test_gymnasium_registration_and_checker():
     assert obs[keys.AFTERSTATE_FEATURES].shape == (26, 17)  # T, L, J: 6 + 7 + 6 + 7 on 8 wide
     frame = env.render()
     assert frame.shape == (8 * 16, 8 * 16, 3) and frame.dtype == np.uint8
+
+
+def test_greedy_placement_avoids_losing_moves_but_scores_the_best_one_when_all_lose():
+    values = torch.tensor([[5.0, 1.0, 3.0, 9.0], [5.0, 1.0, 7.0, 2.0]], dtype=torch.float64)
+    mask = torch.tensor([[True, True, True, False], [True, True, True, True]])
+    terminal = torch.tensor([[True, False, False, False], [True, True, True, True]])
+    # board 0: the best non-terminal valid placement (2); board 1: all lose, so the best of them (2)
+    assert greedy_placement(values, mask, terminal).tolist() == [2, 2]
+    assert greedy_placement(values, mask).tolist() == [0, 2]

@@ -24,7 +24,6 @@ from hfrl_torch.envs.tetris.rules import TetrisRules
 from hfrl_torch.envs.tetris.sequence import game_key, piece_at, uniform_index
 
 SPARE_ROWS = 4
-TERMINAL_PENALTY = -1.0e30  # added to a game-ending placement's value: lose only when nothing else is left
 
 POLICY_LINEAR = 0
 POLICY_RANDOM = 1
@@ -392,8 +391,8 @@ def play_games(
     """Play whole games, game g with linear weights ``weights[g]`` (or uniformly random moves).
 
     A linear policy takes the placement of highest ``w . f(afterstate)``, the first on ties,
-    and a game-ending placement only when every placement ends the game. ``max_pieces`` <= 0
-    plays to the end; otherwise a game stops (``out_capped``) after that many pieces.
+    and a game-ending placement only when every placement ends the game (then the best of them).
+    ``max_pieces`` <= 0 plays to the end; otherwise a game stops (``out_capped``) after that many pieces.
     """
     n_games = seeds.shape[0]
     nrows = height + SPARE_ROWS
@@ -455,11 +454,12 @@ def play_games(
                     v = 0.0
                     for k in range(nf):
                         v += weights[g, k] * feat[k]
-                    if over:
-                        v += TERMINAL_PENALTY
+                    # game-ending placements only when every placement ends the game
+                    take = a == 0 or (best_over and not over) or (over == best_over and v > best_val)
                 else:
                     v = 0.0
-                if v > best_val or (a == 0 and policy == POLICY_LINEAR) or a == pick:
+                    take = True
+                if take:
                     best_val = v
                     best_lines = lines
                     best_over = over

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import torch
 
-from hfrl_torch.envs.tetris.engine_numba import SPARE_ROWS, TERMINAL_PENALTY, spawn_masks
+from hfrl_torch.envs.tetris.engine_numba import SPARE_ROWS, spawn_masks
 from hfrl_torch.envs.tetris.features import BT, DELLACHERIE, DT, KNOX, feature_size
 from hfrl_torch.envs.tetris.pieces import PlacementTable, placement_table
 from hfrl_torch.envs.tetris.rules import TetrisRules
@@ -346,12 +346,18 @@ class TorchEngine:
 def _linear_values(
     feats: torch.Tensor, mask: torch.Tensor, terminal: torch.Tensor, w: torch.Tensor
 ) -> torch.Tensor:
-    """w . f summed feature by feature in float64 (the numba order), terminal penalty, invalid -inf."""
+    """w . f summed feature by feature in float64 (the numba order); invalid and avoidable game-ending
+    placements get -inf."""
     v = torch.zeros(feats.shape[:2], dtype=torch.float64, device=feats.device)
     for k in range(feats.shape[-1]):
         v = v + w[:, k : k + 1] * feats[..., k]
-    v = torch.where(terminal, v + TERMINAL_PENALTY, v)
-    return torch.where(mask, v, -torch.inf)
+    return _exclude(v, mask, terminal)
+
+
+def _exclude(v: torch.Tensor, mask: torch.Tensor, terminal: torch.Tensor) -> torch.Tensor:
+    safe = mask & ~terminal
+    keep = torch.where(safe.any(-1, keepdim=True), safe, mask)
+    return torch.where(keep, v, -torch.inf)
 
 
 def play(

@@ -1,0 +1,96 @@
+"""Oracle trainer with frequency L and consistency C (Griffith et al., "Policy Shaping", NIPS 2013).
+
+A simulated trainer, not a person: at each placement it gives feedback with probability L; the
+feedback is +1 when the agent's placement is the reference policy's, -1 otherwise, flipped with
+probability 1 - C. The reference policy for Tetris is Dellacherie's hand weights over the Dellacherie
+features of the afterstates (``reference_policy``).
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+
+from hfrl_torch.envs.tetris.features import DELLACHERIE_WEIGHTS
+from hfrl_torch.feedback.events import FeedbackEvent
+from hfrl_torch.feedback.log import FeedbackLog
+from hfrl_torch.trainers.base import Events, Trainer, all_active, placement_steps
+from hfrl_torch.trainers.reference_policy import evaluate_placements
+
+
+class OracleTrainer(Trainer):
+    """Griffith et al.'s oracle over Dellacherie's reference policy (source ``"simulated:oracle"``).
+
+    "The agent's placement is the reference's" means it leaves the same board (lines cleared included)
+    as the reference's best placement: two placements that give the same afterstate are the same move to
+    anyone watching the board, so both get +1. Draws come from one seeded generator, B uniforms for L and
+    B for C at every step whatever happens, so a run is a function of its seed.
+
+    :param frequency: L, the probability of giving feedback on a placement.
+    :param consistency: C, the probability that the feedback is the oracle's judgement (else flipped).
+    :param seed: seed of the trainer's generator.
+    :param reaction: seconds between the placement and the event (> 0, so that ``PreviousStep`` credit
+        goes to the placement judged; ``timing.HumanLikeTiming`` replaces it with random delays).
+    :param weights: the reference's weights over the Dellacherie 6.
+    :param log: feedback log every event is appended to.
+    """
+
+    source = "simulated:oracle"
+
+    def __init__(
+        self,
+        frequency: float = 1.0,
+        consistency: float = 1.0,
+        seed: int = 0,
+        reaction: float = 0.3,
+        weights: tuple[float, ...] = DELLACHERIE_WEIGHTS,
+        log: FeedbackLog | None = None,
+    ) -> None:
+        super().__init__(log)
+        for name, v in (("frequency", frequency), ("consistency", consistency)):
+            if not 0.0 <= v <= 1.0:
+                raise ValueError(f"OracleTrainer {name} must be within [0, 1], got {v!r}")
+        if not reaction > 0:
+            raise ValueError(f"OracleTrainer reaction must be > 0 seconds, got {reaction!r}")
+        self.frequency = float(frequency)
+        self.consistency = float(consistency)
+        self.reaction = float(reaction)
+        self.weights = tuple(weights)
+        self.generator = torch.Generator().manual_seed(seed)
+
+    def judge(
+        self, obs: TensorDictBase, action: torch.Tensor, active: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """The noiseless judgement: +1 where ``action`` [B] leaves the reference's board, else -1."""
+        ref = evaluate_placements(obs, active, self.weights)
+        same = ref.same_as_best.gather(-1, action.reshape(-1, 1).to(torch.int64).cpu()).squeeze(-1)
+        return torch.where(same, 1.0, -1.0).to(torch.float64)
+
+    def give(
+        self,
+        obs: TensorDictBase,
+        action: torch.Tensor,
+        time: float,
+        episode: torch.Tensor,
+        active: torch.Tensor | None = None,
+    ) -> Events:
+        act = all_active(obs, active)
+        b = act.shape[0]
+        speaks = torch.rand(b, generator=self.generator, dtype=torch.float64) < self.frequency
+        flips = torch.rand(b, generator=self.generator, dtype=torch.float64) >= self.consistency
+        h = torch.where(flips, -1.0, 1.0) * self.judge(obs, action, act)
+        steps = placement_steps(obs)
+        events: Events = []
+        for i in range(b):
+            if not (act[i] and speaks[i]):
+                events.append([])
+                continue
+            ev = FeedbackEvent(
+                time=time + self.reaction,
+                value=float(h[i]),
+                source=self.source,
+                step=int(steps[i]),
+                episode=int(episode[i]),
+            )
+            events.append([ev])
+        return self._emit(events)
