@@ -31,6 +31,8 @@ OBSERVATION = "observation"  # deciding keeper's state variables
 KEEPER = "keeper"  # index of the deciding keeper
 EPISODE_CYCLES = "episode_cycles"
 END_CAUSE = "end_cause"  # 0 = running, 1 = out of bounds, 2 = taken
+EPISODE_END_REWARDS = "episode_end_rewards"  # [B, n] each keeper's cycles since its last decision at the end
+STEP_CYCLES = "step_cycles"  # [B] cycles simulated during this step
 
 # human feedback channel (issue 3)
 FEEDBACK = "human_feedback"

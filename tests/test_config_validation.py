@@ -64,3 +64,48 @@ def test_evaluate_rejects_bad_values_and_plays_random():
         evaluate_tetris(_cfg("evaluate", "policy=/no/such/dir"), progress=False)
     res = evaluate_tetris(_cfg("evaluate", "policy=random", "games=20"), progress=False)
     assert res["mean"] < 1.0 and res["games"] == 20 and res["policy"] == "random"
+
+
+def test_keepaway_cannot_be_trained_yet_but_says_how_to_evaluate():
+    with pytest.raises(ConfigError, match=r"python evaluate\.py domain=keepaway policy=hand"):
+        validate_train_config(_cfg("train", "domain=keepaway"))
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("policy=dellacherie", "policy='dellacherie' is not a keepaway policy; allowed: hand, random, hold"),
+        ("domain.preset=1999", "domain.preset='1999' is invalid; allowed: 2005, rcss19"),
+        ("domain.keepers=1", "domain.keepers=1 is invalid: must be an integer in 2..11"),
+        ("episodes=0", "episodes=0 is invalid: must be an integer >= 1"),
+        ("domain.decision_period_cycles=0", "domain.decision_period_cycles=0 is invalid"),
+    ],
+)
+def test_keepaway_evaluate_bad_values(override, message):
+    from hfrl_torch.experiment.evaluate import evaluate_keepaway
+
+    with pytest.raises(ConfigError) as info:
+        evaluate_keepaway(_cfg("evaluate", "domain=keepaway", override), progress=False)
+    assert message in str(info.value)
+
+
+def test_keepaway_evaluate_reports_the_issue_fields(tmp_path):
+    from hfrl_torch.experiment.evaluate import evaluate_keepaway
+
+    gif = tmp_path / "episode.gif"
+    cfg = _cfg("evaluate", "domain=keepaway", "policy=hold", "episodes=16", "domain.batch=16", f"gif={gif}")
+    res = evaluate_keepaway(cfg, progress=False)
+    for key in ("domain", "policy", "preset", "keepers", "takers", "episodes", "mean_s", "sd_s", "median_s"):
+        assert key in res
+    for key in ("ci95_low", "ci95_high", "taken_share", "out_share", "cycles_per_s"):
+        assert key in res
+    assert res["episodes"] == 16 and res["policy"] == "hold" and res["keepers"] == 3
+    assert abs(res["taken_share"] + res["out_share"] - 1.0) < 1e-9
+    assert 0.5 < res["mean_s"] < 10.0  # always holding loses the ball within seconds
+    assert gif.is_file() and gif.stat().st_size > 1000
+
+
+def test_keepaway_preset_given_as_a_number_on_the_command_line_is_accepted():
+    from hfrl_torch.experiment.evaluate import keepaway_config
+
+    assert keepaway_config(_cfg("evaluate", "domain=keepaway", "domain.preset=2005")).preset == "2005"

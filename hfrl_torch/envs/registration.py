@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import gymnasium as gym
 
-ENV_IDS = {"hfrl_torch/Tetris-v0": "hfrl_torch.envs.tetris.gym_env:TetrisGymEnv"}
+ENV_IDS = {
+    "hfrl_torch/Tetris-v0": "hfrl_torch.envs.tetris.gym_env:TetrisGymEnv",
+    "hfrl_torch/Keepaway-v0": "hfrl_torch.envs.keepaway.gym_env:KeepawayGymEnv",
+}
 
 
 def register_envs() -> None:

@@ -14,7 +14,7 @@ from tqdm import tqdm
 from hfrl_torch.common.checkpoint import load_checkpoint
 from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.common.stats import summarize
-from hfrl_torch.common.validation import require_int
+from hfrl_torch.common.validation import require_bool, require_choice, require_float, require_int
 from hfrl_torch.envs.tetris.features import DELLACHERIE_WEIGHTS, feature_id, feature_size
 from hfrl_torch.experiment.factories import make_rollout, make_rules, set_threads
 
@@ -23,7 +23,7 @@ NAMED_POLICIES = ("dellacherie", "random")
 
 def _tetris_policy(cfg: DictConfig) -> tuple[str, str, torch.Tensor, bool, DictConfig]:
     """(policy label, feature set, weights, random?, config with the checkpoint's board) of ``policy``."""
-    name = str(cfg.policy)
+    name = "dellacherie" if cfg.policy is None else str(cfg.policy)
     if name == "dellacherie":
         return name, "dellacherie", torch.tensor(DELLACHERIE_WEIGHTS, dtype=torch.float64), False, cfg
     if name == "random":
@@ -140,9 +140,91 @@ def format_summary(r: dict[str, object]) -> str:
 
 def evaluate(cfg: DictConfig) -> dict[str, object]:
     """Evaluate and print the summary, then one JSON line on stdout."""
-    if cfg.domain.name != "tetris":
-        raise ConfigError(f"domain={cfg.domain.name!r} cannot be evaluated yet; allowed: tetris")
-    result = evaluate_tetris(cfg)
-    print(format_summary(result))
+    domain = require_choice(cfg, "domain.name", ("tetris", "keepaway"))
+    if domain == "tetris":
+        result = evaluate_tetris(cfg)
+        print(format_summary(result))
+    else:
+        result = evaluate_keepaway(cfg)
+        print(format_keepaway_summary(result))
     print(json.dumps(result), flush=True)
     return result
+
+
+KEEPAWAY_POLICIES = ("hand", "random", "hold")
+
+
+def keepaway_config(cfg: DictConfig):
+    """The simulator's ``KeepawayConfig`` from ``domain`` (checked, one-line errors)."""
+    from hfrl_torch.envs.keepaway import PRESETS, KeepawayConfig
+
+    cfg.domain.preset = str(cfg.domain.preset)  # the command line reads preset=2005 as a number
+    turnover = OmegaConf.select(cfg, "domain.turnover_cycles")
+    if turnover is not None:
+        turnover = require_int(cfg, "domain.turnover_cycles", 1, 100)
+    return KeepawayConfig(
+        preset=require_choice(cfg, "domain.preset", PRESETS),
+        keepers=require_int(cfg, "domain.keepers", 2, 11),
+        takers=require_int(cfg, "domain.takers", 1, 11),
+        length=require_float(cfg, "domain.length", 1.0, 200.0),
+        width=require_float(cfg, "domain.width", 1.0, 200.0),
+        turnover_cycles=turnover,
+        movement_noise=require_bool(cfg, "domain.movement_noise"),
+        noisy_observations=require_bool(cfg, "domain.noisy_observations"),
+        decision_period_cycles=require_int(cfg, "domain.decision_period_cycles", 1, 100),
+        intercept_horizon=require_int(cfg, "domain.intercept_horizon", 1, 200),
+        collision_passes=require_int(cfg, "domain.collision_passes", 1, 100),
+    )
+
+
+def evaluate_keepaway(cfg: DictConfig, progress: bool = True) -> dict[str, object]:
+    """Play ``episodes`` episodes of a benchmark keeper policy and return the JSON summary."""
+    from dataclasses import asdict
+
+    from hfrl_torch.envs.keepaway import make_benchmark_policy, play_benchmark_policy, record_episode_gif
+
+    policy = "hand" if cfg.policy is None else str(cfg.policy)
+    if policy not in KEEPAWAY_POLICIES:
+        raise ConfigError(
+            f"policy={policy!r} is not a keepaway policy; allowed: {', '.join(KEEPAWAY_POLICIES)} "
+            "(learned keepaway checkpoints arrive with the keepaway learners)"
+        )
+    episodes = require_int(cfg, "episodes", 1)
+    batch = require_int(cfg, "domain.batch", 1, 65536)
+    set_threads(cfg)
+    config = keepaway_config(cfg)
+    options = asdict(config)
+    options.pop("preset"), options.pop("keepers"), options.pop("takers")
+    result = play_benchmark_policy(
+        policy,
+        episodes,
+        preset=config.preset,
+        keepers=config.keepers,
+        takers=config.takers,
+        batch=batch,
+        seed=int(cfg.seed),
+        progress=progress,
+        **options,
+    )
+    if cfg.gif:
+        gen = torch.Generator().manual_seed(int(cfg.seed))
+        chooser = make_benchmark_policy(policy, config.keepers, config.takers, gen)
+        path, cycles = record_episode_gif(cfg.gif, chooser, config, seed=int(cfg.seed))
+        result["gif"] = str(path)
+        result["gif_episode_s"] = cycles / 10.0
+    return result
+
+
+def format_keepaway_summary(r: dict[str, object]) -> str:
+    """Human-readable lines above the final JSON line."""
+    ci = f"{r['ci95_low']:.2f}..{r['ci95_high']:.2f}"
+    out = [
+        f"keepaway {r['keepers']}v{r['takers']} ({r['preset']} preset): {r['policy']} policy",
+        f"  {r['episodes']} episodes: mean {r['mean_s']:.2f} s, 95% CI {ci}, "
+        f"median {r['median_s']:.2f} s, sd {r['sd_s']:.2f} s",
+        f"  ended by takers {100 * r['taken_share']:.0f} %, out of bounds {100 * r['out_share']:.0f} %; "
+        f"{r['cycles_per_s']:.0f} simulated cycles/s",
+    ]
+    if "gif" in r:
+        out.append(f"  one episode ({r['gif_episode_s']:.1f} s) drawn to {r['gif']}")
+    return "\n".join(out)

@@ -142,6 +142,11 @@ def make_run_logger(cfg: DictConfig, log_dir: str, purge_step: int | None) -> Lo
 
 def validate_train_config(cfg: DictConfig) -> None:
     """Check every section ``train.py`` uses, before any work or output."""
+    if cfg.domain.name != "tetris":
+        raise ConfigError(
+            f"domain={cfg.domain.name!r} has no learning agent yet; trainable: tetris "
+            f"(evaluate its benchmark policies: python evaluate.py domain={cfg.domain.name} policy=hand)"
+        )
     check_run(cfg)
     make_rules(cfg)
     check_domain(cfg)

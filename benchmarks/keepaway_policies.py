@@ -1,0 +1,39 @@
+"""Mean episode duration (95 % interval), taken and out shares of the three benchmark keeper
+policies in both presets. Prints one JSON list.
+
+    python benchmarks/keepaway_policies.py [--episodes 1000] [--batch 500]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import torch
+
+torch.set_num_threads(1)
+
+from hfrl_torch.envs.keepaway import play_benchmark_policy  # noqa: E402
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--episodes", type=int, default=1000)
+    parser.add_argument("--batch", type=int, default=500)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--presets", nargs="+", default=["2005", "rcss19"])
+    parser.add_argument("--policies", nargs="+", default=["hold", "random", "hand"])
+    parser.add_argument("--progress", action="store_true")
+    args = parser.parse_args()
+    results = []
+    for preset in args.presets:
+        for policy in args.policies:
+            r = play_benchmark_policy(
+                policy, args.episodes, preset=preset, batch=args.batch, seed=args.seed, progress=args.progress
+            )
+            results.append({k: round(v, 3) if isinstance(v, float) else v for k, v in r.items()})
+    print(json.dumps(results, indent=2))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,44 @@
+"""RoboCup keepaway (Stone, Sutton & Kuhlmann 2005) as a batched torch simulator, a TorchRL
+environment and a Gymnasium environment ("hfrl_torch/Keepaway-v0")."""
+
+from hfrl_torch.envs.keepaway.benchmark_policies import play_benchmark_policy
+from hfrl_torch.envs.keepaway.env import EPISODE_END_REWARDS, STEP_CYCLES, KeepawayEnv
+from hfrl_torch.envs.keepaway.gym_env import ENV_ID, KeepawayGymEnv, register_keepaway
+from hfrl_torch.envs.keepaway.params import PRESETS, KeepawayConfig, PhysicsParams, physics_preset
+from hfrl_torch.envs.keepaway.policies import (
+    POLICIES,
+    hand_coded_actions,
+    hold_actions,
+    make_benchmark_policy,
+    random_actions,
+)
+from hfrl_torch.envs.keepaway.render import record_episode_gif, render_rgb, write_gif
+from hfrl_torch.envs.keepaway.simulator import CycleOutcome, Decision, KeepawaySimulator, KeepawayState
+from hfrl_torch.envs.keepaway.state_vars import keeper_state_variables
+
+__all__ = [
+    "ENV_ID",
+    "EPISODE_END_REWARDS",
+    "POLICIES",
+    "PRESETS",
+    "STEP_CYCLES",
+    "CycleOutcome",
+    "Decision",
+    "KeepawayConfig",
+    "KeepawayEnv",
+    "KeepawayGymEnv",
+    "KeepawaySimulator",
+    "KeepawayState",
+    "PhysicsParams",
+    "hand_coded_actions",
+    "hold_actions",
+    "keeper_state_variables",
+    "make_benchmark_policy",
+    "physics_preset",
+    "play_benchmark_policy",
+    "random_actions",
+    "record_episode_gif",
+    "register_keepaway",
+    "render_rgb",
+    "write_gif",
+]

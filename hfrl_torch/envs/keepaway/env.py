@@ -1,0 +1,218 @@
+"""Keepaway as a batched TorchRL environment with SMDP steps.
+
+One ``step`` hands the chosen macro-actions to the fields' keepers with the ball and then
+simulates 100 ms cycles (all fields in lock-step; a field that reaches its next decision or
+the end of its episode waits for the others) until every field's keeper with the ball must
+decide again. The reward of a step is the number of cycles since the *deciding* keeper's
+previous decision (0 at its first decision), so each keeper's rewards add up to the time the
+ball stayed in play after its first decision.
+
+At the end of an episode, ``episode_end_rewards`` [B, n] gives every keeper's cycles since its
+own last decision (0 for keepers that never decided): what RLendEpisode needs for each keeper.
+The terminal ``reward`` is the entry of the keeper that decided last.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Binary, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from hfrl_torch import keys
+from hfrl_torch.envs.keepaway.params import KeepawayConfig
+from hfrl_torch.envs.keepaway.simulator import KeepawaySimulator
+
+EPISODE_END_REWARDS = keys.EPISODE_END_REWARDS
+STEP_CYCLES = keys.STEP_CYCLES
+
+_OUTPUT_KEYS = (
+    keys.OBSERVATION,
+    keys.KEEPER,
+    keys.ACTION_MASK,
+    keys.EPISODE_CYCLES,
+    keys.END_CAUSE,
+    EPISODE_END_REWARDS,
+    STEP_CYCLES,
+)
+
+
+class KeepawayEnv(EnvBase):
+    """B keepaway fields as one TorchRL environment (Stone, Sutton & Kuhlmann 2005).
+
+    Observation ``"observation"`` [B, 4n + 2m - 3]: the deciding keeper's state variables;
+    ``"keeper"`` [B]: which keeper decides; ``"action_mask"`` [B, n] over {Hold, Pass to teammate
+    1..n-1} (teammates numbered by distance); action [B] in 0..n-1.
+
+    :param batch_size: number of fields B.
+    :param config: the task; keyword arguments override its fields (``preset``, ``keepers``,
+        ``takers``, ``length``, ``width``, ``turnover_cycles``, ``movement_noise``,
+        ``noisy_observations``, ``decision_period_cycles``, ...).
+    :param device: torch device of the simulator and the tensordicts.
+    :param seed: seed of the simulator's generator.
+    :param max_cycles_per_step: safety bound on the cycles simulated in one step.
+    """
+
+    batch_locked = True
+
+    def __init__(
+        self,
+        batch_size: int = 1,
+        config: KeepawayConfig | None = None,
+        *,
+        device: str | torch.device = "cpu",
+        seed: int = 0,
+        max_cycles_per_step: int = 100_000,
+        **config_overrides: object,
+    ) -> None:
+        config = config if config is not None else KeepawayConfig()
+        if config_overrides:
+            config = config.replace(**config_overrides)
+        super().__init__(device=device, batch_size=torch.Size([batch_size]))
+        self.config = config
+        self.max_cycles_per_step = max_cycles_per_step
+        self.sim = KeepawaySimulator(batch_size, config, device=self.device, seed=seed)
+        self._make_specs()
+        self._outputs = self._blank_outputs()
+        self._done = torch.ones(batch_size, dtype=torch.bool, device=self.device)
+
+    # ------------------------------------------------------------------------- specs
+
+    def _make_specs(self) -> None:
+        b, n, a = self.batch_size[0], self.config.keepers, self.config.num_actions
+        f = self.config.num_state_vars
+        self.observation_spec = Composite(
+            {
+                keys.OBSERVATION: Unbounded(shape=(b, f), dtype=torch.float32, device=self.device),
+                keys.KEEPER: Categorical(n, shape=(b,), dtype=torch.int64, device=self.device),
+                keys.ACTION_MASK: Binary(n=a, shape=(b, a), dtype=torch.bool, device=self.device),
+                keys.EPISODE_CYCLES: Unbounded(shape=(b,), dtype=torch.int64, device=self.device),
+                keys.END_CAUSE: Categorical(3, shape=(b,), dtype=torch.int64, device=self.device),
+                EPISODE_END_REWARDS: Unbounded(shape=(b, n), dtype=torch.float32, device=self.device),
+                STEP_CYCLES: Unbounded(shape=(b,), dtype=torch.int64, device=self.device),
+            },
+            shape=(b,),
+            device=self.device,
+        )
+        self.action_spec = Categorical(a, shape=(b,), dtype=torch.int64, device=self.device)
+        self.reward_spec = Unbounded(shape=(b, 1), dtype=torch.float32, device=self.device)
+        self.done_spec = Composite(
+            {
+                k: Categorical(2, shape=(b, 1), dtype=torch.bool, device=self.device)
+                for k in (keys.DONE, keys.TERMINATED, keys.TRUNCATED)
+            },
+            shape=(b,),
+            device=self.device,
+        )
+
+    def _blank_outputs(self) -> dict[str, torch.Tensor]:
+        return {k: spec.zero() for k, spec in self.observation_spec.items()}
+
+    # ----------------------------------------------------------------------- helpers
+
+    def _run_until_decision(
+        self, running: torch.Tensor, restart_ended: bool
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Simulate the ``running`` fields until their keeper with the ball must decide or
+        their episode ends. With ``restart_ended`` an episode that ends first is restarted.
+
+        :returns: which fields ended (never with ``restart_ended``), why, and the cycles
+            simulated [B].
+        """
+        sim = self.sim
+        running = running.clone()
+        ended = torch.zeros_like(running)
+        cause = torch.zeros(running.shape, dtype=torch.int64, device=self.device)
+        cycles = torch.zeros(running.shape, dtype=torch.int64, device=self.device)
+        for _ in range(self.max_cycles_per_step):
+            waiting = running & ~sim.decision().must_decide
+            if not bool(waiting.any()):
+                break
+            out = sim.step(None, active=waiting)
+            cycles += waiting
+            if restart_ended:
+                if bool(out.ended.any()):
+                    sim.reset(out.ended)
+            else:
+                ended |= out.ended
+                cause = torch.where(out.ended, out.end_cause, cause)
+                running &= ~out.ended
+        else:
+            raise RuntimeError("keepaway: no decision within max_cycles_per_step cycles")
+        return ended, cause, cycles
+
+    def _write_decisions(self, fields: torch.Tensor) -> None:
+        """Store the observation of the keeper with the ball on ``fields`` [B]."""
+        dec = self.sim.decision()
+        obs, _ = self.sim.observe(dec.holder)
+        out = self._outputs
+        f = fields
+        out[keys.OBSERVATION] = torch.where(f[:, None], obs.to(torch.float32), out[keys.OBSERVATION])
+        out[keys.KEEPER] = torch.where(f, dec.holder, out[keys.KEEPER])
+        out[keys.ACTION_MASK] = torch.where(f[:, None], True, out[keys.ACTION_MASK])
+        out[keys.EPISODE_CYCLES] = torch.where(f, self.sim.state.episode_cycles, out[keys.EPISODE_CYCLES])
+
+    def _result(self, reward: torch.Tensor | None) -> TensorDict:
+        done = self._done.unsqueeze(-1)
+        td = TensorDict(
+            {k: v.clone() for k, v in self._outputs.items()},
+            batch_size=self.batch_size,
+            device=self.device,
+        )
+        td.set(keys.DONE, done.clone())
+        td.set(keys.TERMINATED, done.clone())
+        td.set(keys.TRUNCATED, torch.zeros_like(done))
+        if reward is not None:
+            td.set(keys.REWARD, reward.to(torch.float32).unsqueeze(-1))
+        return td
+
+    # ------------------------------------------------------------------ EnvBase API
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: object) -> TensorDictBase:
+        if tensordict is not None and keys.RESET in tensordict:
+            mask = tensordict.get(keys.RESET).reshape(-1).to(self.device)
+        else:
+            mask = torch.ones(self.batch_size, dtype=torch.bool, device=self.device)
+        self.sim.reset(mask)
+        self._run_until_decision(mask, restart_ended=True)
+        out = self._outputs
+        out[keys.END_CAUSE] = torch.where(mask, 0, out[keys.END_CAUSE])
+        out[EPISODE_END_REWARDS] = torch.where(mask[:, None], 0.0, out[EPISODE_END_REWARDS])
+        out[STEP_CYCLES] = torch.where(mask, 0, out[STEP_CYCLES])
+        self._write_decisions(mask)
+        self._done = self._done & ~mask
+        return self._result(None)
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        sim = self.sim
+        actions = tensordict.get(keys.ACTION).reshape(-1).to(self.device).long()
+        alive = ~self._done
+        first = sim.step(actions, active=alive)
+        ended, cause = first.ended.clone(), first.end_cause.clone()
+        later_ended, later_cause, cycles = self._run_until_decision(alive & ~ended, restart_ended=False)
+        ended |= later_ended
+        cause = torch.where(later_ended, later_cause, cause)
+        cycles = cycles + alive.long()
+
+        state = sim.state
+        holder = sim.decision().holder
+        last = state.last_decision.gather(1, holder.unsqueeze(-1)).squeeze(-1)
+        decision_reward = torch.where(last >= 0, state.episode_cycles - last, torch.zeros_like(last))
+        latest = state.last_decision.max(-1).values
+        end_reward = torch.where(latest >= 0, state.episode_cycles - latest, state.episode_cycles)
+        reward = torch.where(ended, end_reward, torch.where(alive, decision_reward, torch.zeros_like(last)))
+
+        self._write_decisions(alive)
+        out = self._outputs
+        out[keys.END_CAUSE] = torch.where(ended, cause, torch.where(alive, 0, out[keys.END_CAUSE]))
+        end_rewards = sim.episode_end_rewards().to(torch.float32)
+        out[EPISODE_END_REWARDS] = torch.where(
+            ended[:, None], end_rewards, torch.where(alive[:, None], 0.0, out[EPISODE_END_REWARDS])
+        )
+        out[STEP_CYCLES] = torch.where(alive, cycles, 0)
+        self._done = self._done | ended
+        return self._result(reward)
+
+    def _set_seed(self, seed: int | None) -> None:
+        if seed is not None:
+            self.sim.seed(seed)

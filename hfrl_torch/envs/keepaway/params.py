@@ -1,0 +1,128 @@
+"""Server parameter presets and the task configuration of the keepaway simulator.
+
+Two presets reproduce the rcssserver physics the keepaway benchmark was run on:
+``"2005"`` (server 9.4.5, the Adaptive Behavior 2005 papers) and ``"rcss19"``
+(current servers). The values follow docs/keepaway.md and the project spec.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+PRESETS = ("2005", "rcss19")
+
+
+@dataclass(frozen=True)
+class PhysicsParams:
+    """Server constants of one preset (metres, cycles of 100 ms, angles in radians)."""
+
+    ball_decay: float = 0.94
+    ball_rand: float = 0.05
+    ball_accel_max: float = 2.7
+    ball_speed_max: float = 2.7
+    ball_size: float = 0.085
+    player_decay: float = 0.4
+    player_rand: float = 0.1
+    player_size: float = 0.3
+    player_speed_max: float = 1.2
+    player_accel_max: float = 1.0
+    kickable_margin: float = 0.7
+    dash_power_rate: float = 0.006
+    kick_power_rate: float = 0.027
+    min_dash_power: float = -100.0
+    max_power: float = 100.0
+    kick_rand: float = 0.0
+    inertia_moment: float = 5.0
+    max_moment: float = math.pi
+    polar_noise: bool = False  # False: uniform per axis (server 9); True: polar (rcss19)
+
+    @property
+    def kickable_distance(self) -> float:
+        """Centre distance within which a player can kick the ball (1.085 m)."""
+        return self.player_size + self.kickable_margin + self.ball_size
+
+
+def physics_preset(name: str) -> PhysicsParams:
+    """The physics constants of the named preset (``"2005"`` or ``"rcss19"``)."""
+    if name == "2005":
+        return PhysicsParams()
+    if name == "rcss19":
+        return PhysicsParams(
+            ball_speed_max=3.0,
+            player_speed_max=1.05,
+            min_dash_power=0.0,
+            kick_rand=0.1,
+            polar_noise=True,
+        )
+    raise ValueError(f"unknown keepaway preset {name!r}; expected one of {PRESETS}")
+
+
+@dataclass(frozen=True)
+class KeepawayConfig:
+    """Everything that defines a keepaway task, apart from the batch size and the seed.
+
+    :param preset: physics preset, ``"2005"`` or ``"rcss19"``.
+    :param keepers: number of keepers n (at least 2).
+    :param takers: number of takers m (at least 1).
+    :param length: region length L in metres (x extent).
+    :param width: region width W in metres (y extent).
+    :param turnover_cycles: cycles of taker possession that end an episode; ``None`` means the
+        preset's server value (5 for ``"2005"``, 4 for ``"rcss19"``).
+    :param movement_noise: add the server's movement, turn and kick noise.
+    :param noisy_observations: quantise the deciding keeper's view like the server's visual sensor.
+    :param decision_period_cycles: cycles a HoldBall decision lasts (1 = 100 ms reference,
+        5 = 500 ms as in the thesis's human-feedback experiments).
+    :param intercept_horizon: look-ahead of GoToBall in cycles.
+    :param collision_passes: maximal passes of the collision resolution.
+    """
+
+    preset: str = "2005"
+    keepers: int = 3
+    takers: int = 2
+    length: float = 20.0
+    width: float = 20.0
+    turnover_cycles: int | None = None
+    movement_noise: bool = True
+    noisy_observations: bool = False
+    decision_period_cycles: int = 1
+    intercept_horizon: int = 30
+    collision_passes: int = 10
+
+    def __post_init__(self) -> None:
+        physics_preset(self.preset)
+        if self.keepers < 2:
+            raise ValueError("keepaway needs at least 2 keepers")
+        if self.takers < 1:
+            raise ValueError("keepaway needs at least 1 taker")
+        if self.decision_period_cycles < 1:
+            raise ValueError("decision_period_cycles must be >= 1")
+        if self.length <= 0 or self.width <= 0:
+            raise ValueError("the region must have a positive size")
+
+    @property
+    def physics(self) -> PhysicsParams:
+        """The preset's physics constants."""
+        return physics_preset(self.preset)
+
+    @property
+    def turnover(self) -> int:
+        """Cycles of taker possession that end the episode."""
+        if self.turnover_cycles is not None:
+            return self.turnover_cycles
+        return 5 if self.preset == "2005" else 4
+
+    @property
+    def num_actions(self) -> int:
+        """HoldBall plus one PassBall per teammate."""
+        return self.keepers
+
+    @property
+    def num_state_vars(self) -> int:
+        """Length of the deciding keeper's state vector, 4n + 2m - 3."""
+        return 4 * self.keepers + 2 * self.takers - 3
+
+    def replace(self, **changes: object) -> KeepawayConfig:
+        """A copy with some fields changed."""
+        return dataclasses.replace(self, **changes)

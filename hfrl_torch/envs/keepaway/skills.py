@@ -1,0 +1,470 @@
+"""Player skills of the UT Austin keepaway players, batched: turn/dash primitives, HoldBall,
+PassBall, GoToBall (interception with look-ahead), GetOpen and BlockPass.
+
+A command is a tensor [..., 3] = (kind, power, angle): kind 0 none, 1 turn (angle = moment),
+2 dash (power), 3 kick (power, angle = direction relative to the body).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from hfrl_torch.envs.keepaway.params import PhysicsParams
+from hfrl_torch.envs.keepaway.physics import (
+    DASH_KIND,
+    KICK_KIND,
+    TURN_KIND,
+    direction,
+    dot,
+    kick_power_rate,
+    norm,
+    unit,
+    wrap_angle,
+)
+
+WHEN_TO_TURN = math.radians(7.0)  # PlayerWhenToTurnAngle
+MARK_TURN = math.radians(25.0)  # turn threshold of mark()
+GET_OPEN_BUFFER = 1.5  # within this distance of the GetOpen point, face the ball
+MARK_DISTANCE = 4.0  # BlockPass stands this far from the marked keeper, towards the ball
+MARK_BUFFER = 2.0
+HOLD_RATIO_KEEPER = 0.7  # HoldBall puts the ball at player+ball size + ratio * kickable_margin
+HOLD_RATIO_TAKER = 0.3
+REPOSITION_RATIO = 0.16  # kickBallCloseToBody's default ratio
+HOLD_OPPONENT_RANGE = 5.0
+HOLD_SPOT_TOLERANCE = 0.3
+PASS_END_SPEED = 1.2
+WHEN_TO_KICK = 0.85  # PlayerWhenToKick
+GOAL_X = 52.5  # the pitch's goal line, the point HoldBall turns to when the ball lies well
+
+
+def command(kind: int | Tensor, power: Tensor | float, angle: Tensor | float, like: Tensor) -> Tensor:
+    """A command tensor [..., 3] shaped like ``like`` [...]."""
+    kind_t = torch.as_tensor(kind, dtype=like.dtype, device=like.device).expand_as(like)
+    power_t = torch.as_tensor(power, dtype=like.dtype, device=like.device).expand_as(like)
+    angle_t = torch.as_tensor(angle, dtype=like.dtype, device=like.device).expand_as(like)
+    return torch.stack((kind_t, power_t, angle_t), dim=-1)
+
+
+def choose(mask: Tensor, if_true: Tensor, if_false: Tensor) -> Tensor:
+    """Per-player choice between two commands."""
+    return torch.where(mask.unsqueeze(-1), if_true, if_false)
+
+
+def pass_speed(distance: Tensor, end_speed: float = PASS_END_SPEED, decay: float = 0.94) -> Tensor:
+    """First speed of a pass that arrives with ``end_speed`` after ``distance`` metres.
+
+    v0 = end * (1/decay)^n with n the smallest whole number of cycles whose backward series
+    sum_{i<n} end (1/decay)^i covers the distance (1.54, 1.85, 2.52 m/cycle at 5, 10, 20 m).
+    """
+    ratio = 1.0 / decay
+    cycles = torch.log1p(distance.clamp_min(0.0) * (ratio - 1.0) / end_speed) / math.log(ratio)
+    cycles = torch.ceil(cycles - 1e-6).clamp_min(0.0)
+    return end_speed * torch.pow(torch.full_like(cycles, ratio), cycles)
+
+
+# ----------------------------------------------------------------- turn and dash primitives
+
+
+def turn_moment_to_point(
+    pos: Tensor, vel: Tensor, body: Tensor, target: Tensor, physics: PhysicsParams
+) -> Tensor:
+    """Turn moment that points the body at ``target`` from next cycle's position, compensating
+    the inertia of a moving player (the server caps it at 180 degrees)."""
+    err = wrap_angle(direction(target - (pos + vel)) - body)
+    moment = err * (1.0 + physics.inertia_moment * norm(vel))
+    return moment.clamp(-physics.max_moment, physics.max_moment)
+
+
+def face_point(pos: Tensor, vel: Tensor, body: Tensor, target: Tensor, physics: PhysicsParams) -> Tensor:
+    """Turn command towards ``target``."""
+    return command(TURN_KIND, 0.0, turn_moment_to_point(pos, vel, body, target, physics), body)
+
+
+def dash_power_to_point(
+    pos: Tensor, vel: Tensor, body: Tensor, target: Tensor, physics: PhysicsParams
+) -> Tensor:
+    """Dash power that brings the player as close to ``target`` as one dash can (players'
+    getPowerForDash): full power unless the target is less than a step ahead."""
+    heading = unit(body)
+    wanted = dot(target - pos, heading).clamp(max=physics.player_speed_max)
+    accel = wanted - dot(vel, heading)
+    return (accel / physics.dash_power_rate).clamp(physics.min_dash_power, physics.max_power)
+
+
+def rolled_out(pos: Tensor, vel: Tensor, physics: PhysicsParams) -> Tensor:
+    """Where a player stops if it issues no more commands."""
+    return pos + vel / (1.0 - physics.player_decay)
+
+
+def move_to_point(
+    pos: Tensor, vel: Tensor, body: Tensor, target: Tensor, turn_threshold: float, physics: PhysicsParams
+) -> Tensor:
+    """Turn if the heading error (seen from the rolled-out position) exceeds ``turn_threshold``,
+    else dash towards ``target`` (moveToPos)."""
+    err = wrap_angle(direction(target - rolled_out(pos, vel, physics)) - body)
+    turn = face_point(pos, vel, body, target, physics)
+    dash = command(DASH_KIND, dash_power_to_point(pos, vel, body, target, physics), 0.0, body)
+    return choose(err.abs() > turn_threshold, turn, dash)
+
+
+def intercept_move(
+    pos: Tensor, vel: Tensor, body: Tensor, target: Tensor, ball_pos: Tensor, physics: PhysicsParams
+) -> Tensor:
+    """Command towards an interception point (predictCommandToMoveToPos).
+
+    Turns only when the point lies off the body line by more than a distance-dependent
+    multiple of the kickable distance, or behind and more than 2.5 m away, and the heading
+    error exceeds 7 degrees; otherwise dashes (backwards when the preset allows). A player whose
+    rolled-out position is within 0.5 m of the point turns to face the ball instead.
+    """
+    kickable = physics.kickable_distance
+    pred = rolled_out(pos, vel, physics)
+    rel = target - pred
+    heading = unit(body)
+    lateral = (heading[..., 0] * rel[..., 1] - heading[..., 1] * rel[..., 0]).abs()
+    far = norm(target - pos)
+    ratio = torch.where(far > 20.0, 3.0, torch.where(far > 10.0, 2.0, 0.9))
+    err = wrap_angle(direction(rel) - body)
+    behind = (norm(rel) > 2.5) & (err.abs() > 0.5 * math.pi)
+    turn_needed = ((lateral > ratio * kickable) | behind) & (err.abs() > WHEN_TO_TURN)
+    turn = face_point(pos, vel, body, target, physics)
+    dash = command(DASH_KIND, dash_power_to_point(pos, vel, body, target, physics), 0.0, body)
+    move = choose(turn_needed, turn, dash)
+    return choose(norm(rel) < 0.5, face_point(pos, vel, body, ball_pos, physics), move)
+
+
+# ----------------------------------------------------------------------------- GoToBall
+
+
+def predict_ball(ball_pos: Tensor, ball_vel: Tensor, decay: float, horizon: int) -> Tensor:
+    """Ball positions [B, horizon + 1, 2] after 0..horizon cycles without kicks or noise."""
+    steps = torch.arange(horizon + 1, device=ball_pos.device, dtype=ball_pos.dtype)
+    travelled = (1.0 - torch.pow(torch.full_like(steps, decay), steps)) / (1.0 - decay)
+    return ball_pos.unsqueeze(-2) + travelled.unsqueeze(-1) * ball_vel.unsqueeze(-2)
+
+
+def ball_rest_point(ball_pos: Tensor, ball_vel: Tensor, decay: float) -> Tensor:
+    """Where the ball stops if nobody touches it."""
+    return ball_pos + ball_vel / (1.0 - decay)
+
+
+def _reach_table(horizon: int, physics: PhysicsParams, device: torch.device, dtype: torch.dtype) -> Tensor:
+    """Distance [4, H + 1] a resting player covers by cycle i after t = 0..3 turns (dashing
+    at full power the remaining i - t cycles); -1 where no dash fits."""
+    decay = physics.player_decay
+    accel = min(physics.max_power * physics.dash_power_rate, physics.player_accel_max)
+    cruise = min(accel / (1.0 - decay), physics.player_speed_max)
+    first = min(accel, physics.player_speed_max)
+    table = torch.full((4, horizon + 1), -1.0, dtype=torch.float64)
+    for turns in range(4):
+        for cycle in range(turns + 1, horizon + 1):
+            dashes = cycle - turns
+            table[turns, cycle] = dashes * cruise + (first - cruise) * (1.0 - decay**dashes) / (1.0 - decay)
+    return table.to(device=device, dtype=dtype)
+
+
+def intercept_estimate(
+    pos: Tensor,
+    vel: Tensor,
+    body: Tensor,
+    ball_pos: Tensor,
+    ball_vel: Tensor,
+    horizon: int,
+    physics: PhysicsParams,
+) -> tuple[Tensor, Tensor]:
+    """Cycles until each player can have the ball within kickable distance, and where.
+
+    For every look-ahead cycle i the player needs the turns to face the ball's position
+    (each turn limited by its inertia, the speed decaying between turns) and then full-power
+    dashes covering the distance less the kickable distance; the first i where that fits is the
+    interception. If no cycle of the horizon fits, the player runs to the ball's rest point.
+    The ball moves on a straight line, so everything reduces to scalars per (cycle, player),
+    laid out [H + 1, B, P] so that the reductions over cycles are elementwise.
+
+    :param pos: player positions [B, P, 2]; ``vel`` alike, ``body`` [B, P].
+    :param ball_pos: ball position [B, 2]; ``ball_vel`` alike.
+    :returns: cycles [B, P] (long) and interception points [B, P, 2].
+    """
+    kickable = physics.kickable_distance
+    decay = physics.player_decay
+    accel = min(physics.max_power * physics.dash_power_rate, physics.player_accel_max)
+    cruise = min(accel / (1.0 - decay), physics.player_speed_max)
+    cycles_1d = torch.arange(horizon + 1, device=pos.device, dtype=pos.dtype)
+    travel_1d = (1.0 - torch.pow(torch.full_like(cycles_1d, physics.ball_decay), cycles_1d)) / (
+        1.0 - physics.ball_decay
+    )
+    travel = travel_1d[:, None, None]
+    travel_sq = travel * travel
+    hx, hy = torch.cos(body), torch.sin(body)
+    vx, vy = ball_vel[:, None, 0], ball_vel[:, None, 1]
+    v_sq = vx * vx + vy * vy
+    dx = ball_pos[:, None, 0] - pos[..., 0]
+    dy = ball_pos[:, None, 1] - pos[..., 1]
+    # in-place chains keep the [H+1, B, P] temporaries few (allocation dominates on CPU)
+    need = travel * (2.0 * (dx * vx + dy * vy))
+    need.add_(dx * dx + dy * dy).addcmul_(travel_sq, v_sq).clamp_min_(0.0).sqrt_().sub_(kickable)
+    ex, ey = dx - vel[..., 0], dy - vel[..., 1]
+    cos_err = travel * (2.0 * (ex * vx + ey * vy))
+    cos_err.add_(ex * ex + ey * ey + 1e-12).addcmul_(travel_sq, v_sq).clamp_min_(1e-12).rsqrt_()
+    cos_err.mul_(travel * (vx * hx + vy * hy) + (ex * hx + ey * hy))
+    speed = torch.hypot(vel[..., 0], vel[..., 1])
+    table = _reach_table(horizon, physics, pos.device, pos.dtype)[:, :, None, None]  # [4, H+1, 1, 1]
+    forward = (vel[..., 0] * hx + vel[..., 1] * hy).clamp_min(0.0)
+    first = (forward + accel).clamp(max=physics.player_speed_max)
+    series = ((1.0 - torch.pow(torch.full_like(cycles_1d, decay), cycles_1d)) / (1.0 - decay))[:, None, None]
+    reach_now = series * (first - cruise)
+    reach_now.add_((cycles_1d * cruise)[:, None, None])
+    # t turns fit when the heading error is within the first t turns' reach (+7 degrees); the
+    # turn counts are nested and fewer turns leave more dashing, so the union is exact
+    can = need <= table[3]
+    capacity = torch.zeros_like(speed)
+    for t in range(3):
+        limit = (capacity + WHEN_TO_TURN).clamp(max=math.pi)
+        ready = cos_err >= torch.cos(limit)
+        can |= ready & (need <= (reach_now if t == 0 else table[t]))
+        capacity = capacity + (math.pi / (1.0 + physics.inertia_moment * speed * decay**t)).clamp(max=math.pi)
+    weights = torch.arange(horizon + 1, 0, -1, device=pos.device, dtype=torch.uint8)[:, None, None]
+    score = (can.to(torch.uint8) * weights).amax(0)  # the first reachable cycle wins
+    found = score > 0
+    first_cycle = (horizon + 1 - score.long()).clamp(max=horizon)
+    along = travel_1d[first_cycle]
+    point = ball_pos.unsqueeze(1) + along.unsqueeze(-1) * ball_vel.unsqueeze(1)
+    rest = (ball_pos + ball_vel / (1.0 - physics.ball_decay)).unsqueeze(1).expand_as(point)
+    fallback_cycles = horizon + 1 + torch.ceil(norm(rest - pos) / cruise).long()
+    cycles = torch.where(found, first_cycle, fallback_cycles)
+    return cycles, torch.where(found.unsqueeze(-1), point, rest)
+
+
+# ------------------------------------------------------------------------------- kicking
+
+
+def kick_for_acceleration(accel: Tensor, rate: Tensor, body: Tensor) -> Tensor:
+    """Kick command that gives the ball acceleration ``accel`` (power not yet capped)."""
+    return command(KICK_KIND, norm(accel) / rate.clamp_min(1e-6), wrap_angle(direction(accel) - body), body)
+
+
+def accelerate_ball_to_velocity(
+    vel_des: Tensor, ball_vel: Tensor, rate: Tensor, body: Tensor, physics: PhysicsParams
+) -> Tensor:
+    """Kick giving the ball velocity ``vel_des``; if out of reach, a full-power kick that at
+    least makes the ball move along ``vel_des`` (accelerateBallToVelocity)."""
+    acc_des = vel_des - ball_vel
+    exact = kick_for_acceleration(acc_des, rate, body)
+    reachable = (norm(acc_des) < physics.ball_accel_max) & (exact[..., 1] <= physics.max_power)
+    heading = direction(vel_des)
+    across = -torch.sin(heading) * ball_vel[..., 0] + torch.cos(heading) * ball_vel[..., 1]
+    full_speed = (rate * physics.max_power).clamp_min(1e-6)
+    ang = heading - torch.asin((across / full_speed).clamp(-1.0, 1.0))
+    strong = command(KICK_KIND, physics.max_power, wrap_angle(ang - body), body)
+    return choose(reachable, exact, strong)
+
+
+def kick_ball_close_to_body(
+    pos: Tensor,
+    vel: Tensor,
+    body: Tensor,
+    ball_pos: Tensor,
+    ball_vel: Tensor,
+    global_angle: Tensor,
+    ratio: float | Tensor,
+    physics: PhysicsParams,
+) -> Tensor:
+    """Kick that puts the ball next cycle at ``player_size + ball_size + ratio * margin`` from
+    the player's next position, in direction ``global_angle``; power capped at the maximum."""
+    reach = physics.player_size + physics.ball_size + ratio * physics.kickable_margin
+    if isinstance(reach, Tensor):
+        reach = reach.unsqueeze(-1)
+    spot = pos + vel + reach * unit(global_angle)
+    rate = kick_power_rate(pos, body, ball_pos, physics)
+    kick = kick_for_acceleration(spot - ball_pos - ball_vel, rate, body)
+    return torch.cat((kick[..., :1], kick[..., 1:2].clamp(max=physics.max_power), kick[..., 2:]), dim=-1)
+
+
+def hold_ball(
+    pos: Tensor,
+    vel: Tensor,
+    body: Tensor,
+    ball_pos: Tensor,
+    ball_vel: Tensor,
+    opp_pos: Tensor,
+    ratio: float,
+    goal_x: float,
+    physics: PhysicsParams,
+) -> Tensor:
+    """HoldBall for one player per field [B].
+
+    With an opponent within 5 m of the player, the ball goes to 45 degrees off the line
+    nearest opponent -> me, on whichever side of that line the ball already is; otherwise
+    straight ahead of the body. (The reference measured the opponent's distance to the ball and
+    chose the side from its body heading; with exact information both make the ball jump
+    between two spots every cycle, see docs/keepaway.md.) If the ball already lies within 0.3 m
+    of that spot and stays kickable, the player turns towards the pitch's goal (goal_x, 0)
+    instead of kicking.
+
+    :param opp_pos: opponents [B, M, 2].
+    """
+    opp_dist = norm(opp_pos - pos.unsqueeze(-2))
+    nearest = opp_dist.argmin(-1, keepdim=True)
+    near_pos = torch.gather(opp_pos, -2, nearest.unsqueeze(-1).expand(-1, 1, 2)).squeeze(-2)
+    close = torch.gather(opp_dist, -1, nearest).squeeze(-1) < HOLD_OPPONENT_RANGE
+    away = direction(pos - near_pos)
+    reach = physics.player_size + physics.ball_size + ratio * physics.kickable_margin
+    plus = wrap_angle(away + math.radians(45.0))
+    minus = wrap_angle(away - math.radians(45.0))
+    plus_nearer = norm(pos + reach * unit(plus) - ball_pos) <= norm(pos + reach * unit(minus) - ball_pos)
+    angle = torch.where(close, torch.where(plus_nearer, plus, minus), body)
+    spot = pos + reach * unit(angle)
+    kick = kick_ball_close_to_body(pos, vel, body, ball_pos, ball_vel, angle, ratio, physics)
+    goal = torch.tensor([goal_x, 0.0], device=pos.device, dtype=pos.dtype).expand_as(pos)
+    turn = face_point(pos, vel, body, goal, physics)
+    stays = norm((ball_pos + ball_vel) - (pos + vel)) < 0.85 * physics.kickable_distance
+    return choose((norm(ball_pos - spot) < HOLD_SPOT_TOLERANCE) & stays, turn, kick)
+
+
+def pass_ball(
+    pos: Tensor,
+    vel: Tensor,
+    body: Tensor,
+    ball_pos: Tensor,
+    ball_vel: Tensor,
+    target: Tensor,
+    opponent_near_ball: Tensor,
+    physics: PhysicsParams,
+) -> Tensor:
+    """PassBall for one player per field [B]: kick so the ball reaches ``target`` at 1.2 m/cycle
+    (kickTo with the pass end speed).
+
+    If the kick would run the ball into the kicker, the wanted speed is shortened or lengthened
+    by the collision distance. A wanted speed above the ball's maximum is kicked anyway when a
+    full-power kick already gives more than 85 % of ball_accel_max; a kick needing more than 105 %
+    of the maximum power (130 % with an opponent within 2 m of the ball) is not tried. In both
+    failing cases the kicker repositions the ball in front of its body instead.
+    """
+    traj = target - ball_pos
+    heading = direction(traj)
+    speed = pass_speed(norm(traj), PASS_END_SPEED, physics.ball_decay)
+    touch = physics.ball_size + physics.player_size
+    along = unit(heading)
+    hits_me = norm((pos + vel) - (ball_pos + speed.unsqueeze(-1) * along)) < touch
+    proj = dot(pos - ball_pos, along)
+    shortened = torch.where(speed < proj, proj - touch, proj + touch)
+    speed = torch.where(hits_me, shortened, speed)
+    vel_des = speed.unsqueeze(-1) * along
+    rate = kick_power_rate(pos, body, ball_pos, physics)
+    shoot = accelerate_ball_to_velocity(vel_des, ball_vel, rate, body, physics)
+    reposition = kick_ball_close_to_body(pos, vel, body, ball_pos, ball_vel, body, REPOSITION_RATIO, physics)
+    full_speed = rate * physics.max_power
+    across = -torch.sin(heading) * ball_vel[..., 0] + torch.cos(heading) * ball_vel[..., 1]
+    ang = heading - torch.asin((across / full_speed.clamp_min(1e-6)).clamp(-1.0, 1.0))
+    best_speed = norm(ball_vel + full_speed.unsqueeze(-1) * unit(ang))
+    too_fast_ok = best_speed > WHEN_TO_KICK * physics.ball_accel_max
+    needed = norm(vel_des - ball_vel) / rate.clamp_min(1e-6)
+    power_ok = (needed <= 1.05 * physics.max_power) | (
+        opponent_near_ball & (needed <= 1.30 * physics.max_power)
+    )
+    ok = torch.where(speed > physics.ball_speed_max, too_fast_ok, power_ok)
+    return choose(ok, shoot, reposition)
+
+
+# ------------------------------------------------------------------ GetOpen and BlockPass
+
+
+def get_open_grid(length: float, width: float, device: torch.device, dtype: torch.dtype) -> Tensor:
+    """The 25 GetOpen candidates [25, 2]: a 5 x 5 grid with a 15 % border on each side."""
+    xs = torch.linspace(-0.35 * length, 0.35 * length, 5, device=device, dtype=dtype)
+    ys = torch.linspace(-0.35 * width, 0.35 * width, 5, device=device, dtype=dtype)
+    gx, gy = torch.meshgrid(xs, ys, indexing="ij")
+    return torch.stack((gx.reshape(-1), gy.reshape(-1)), dim=-1)
+
+
+def in_pass_cone(origin: Tensor, end: Tensor, others: Tensor, width: float = 0.3) -> Tensor:
+    """Whether each of ``others`` [..., K, 2] lies in the pass cone origin -> end [..., 2].
+
+    With q the projection on the line: |other - q| < width |q - origin|, q between the ends, and
+    the other closer to the origin than the end is.
+    """
+    seg = end - origin
+    rel = others - origin.unsqueeze(-2)
+    return _cone_test(seg[..., 0:1], seg[..., 1:2], rel[..., 0], rel[..., 1], width)
+
+
+def _cone_test(sx: Tensor, sy: Tensor, rx: Tensor, ry: Tensor, width: float) -> Tensor:
+    """Pass-cone test on components (segment s, others r, both relative to the origin).
+
+    With d = r.s and L = |s|^2: off-line distance^2 = |r|^2 - d^2/L, distance along = d/sqrt(L),
+    so the cone condition is |r|^2 L < (1 + width^2) d^2 with 0 <= d <= L and |r|^2 < L.
+    """
+    seg_sq = sx * sx + sy * sy
+    along = rx * sx + ry * sy
+    rel_sq = rx * rx + ry * ry
+    inside = rel_sq * seg_sq < (1.0 + width * width) * along * along
+    return inside & (along >= 0.0) & (along <= seg_sq) & (rel_sq < seg_sq)
+
+
+def get_open_target(keeper_pos: Tensor, taker_pos: Tensor, pass_from: Tensor, grid: Tensor) -> Tensor:
+    """GetOpen point [B, n, 2] of every keeper: the least congested grid point whose pass cone
+    from ``pass_from`` holds no taker (the region centre if none).
+
+    Congestion of a point for keeper k: sum over all other players of 1 / distance.
+    """
+    keepers = keeper_pos.shape[-2]
+    players = torch.cat((keeper_pos, taker_pos), dim=-2)  # [B, P, 2]
+    gx, gy = grid[:, 0, None, None], grid[:, 1, None, None]  # [25, 1, 1]
+    px, py = players[..., 0], players[..., 1]  # [B, P]
+    inv = torch.rsqrt((gx - px) ** 2 + (gy - py) ** 2 + 1e-12)  # [25, B, P]
+    congestion = inv.sum(-1, keepdim=True) - inv[..., :keepers]  # [25, B, n]
+    sx = gx[..., 0] - pass_from[:, 0]  # [25, B]
+    sy = gy[..., 0] - pass_from[:, 1]
+    rx = taker_pos[..., 0] - pass_from[:, 0, None]  # [B, m]
+    ry = taker_pos[..., 1] - pass_from[:, 1, None]
+    blocked = _cone_test(sx.unsqueeze(-1), sy.unsqueeze(-1), rx, ry, 0.3).any(-1)  # [25, B]
+    congestion = congestion + blocked.unsqueeze(-1).to(congestion.dtype) * 1e9
+    best = congestion.amin(0)
+    weights = torch.arange(grid.shape[0], 0, -1, device=grid.device, dtype=congestion.dtype)[:, None, None]
+    index = grid.shape[0] - ((congestion == best).to(congestion.dtype) * weights).amax(0).long()  # [B, n]
+    point = grid[index]
+    none_valid = blocked.all(0)
+    return torch.where(none_valid[:, None, None], torch.zeros_like(point), point)
+
+
+def get_open(
+    pos: Tensor, vel: Tensor, body: Tensor, target: Tensor, ball_pos: Tensor, physics: PhysicsParams
+) -> Tensor:
+    """GetOpen movement: face the ball within 1.5 m of the point, else move there (7 degrees)."""
+    move = move_to_point(pos, vel, body, target, WHEN_TO_TURN, physics)
+    face = face_point(pos, vel, body, ball_pos, physics)
+    return choose(norm(pos - target) < GET_OPEN_BUFFER, face, move)
+
+
+def block_pass_target(keeper_pos: Tensor, taker_pos: Tensor, with_ball: Tensor, ball_pos: Tensor) -> Tensor:
+    """BlockPass point [B, 2]: 4 m from the most open keeper towards the ball (never past it).
+
+    The most open keeper is the one, other than ``with_ball`` [B], with the fewest takers in
+    the pass cone from the keeper with the ball (ties: lower index).
+    """
+    holder = torch.gather(keeper_pos, 1, with_ball[:, None, None].expand(-1, 1, 2)).squeeze(1)
+    batch, keepers = keeper_pos.shape[:2]
+    origin = holder.unsqueeze(1).expand(-1, keepers, -1).reshape(-1, 2)
+    blockers = (
+        in_pass_cone(origin, keeper_pos.reshape(-1, 2), taker_pos.repeat_interleave(keepers, dim=0))
+        .sum(-1)
+        .reshape(batch, keepers)
+    )
+    blockers = blockers.scatter(1, with_ball.unsqueeze(-1), torch.iinfo(blockers.dtype).max)
+    open_keeper = blockers.argmin(-1)
+    kpos = torch.gather(keeper_pos, 1, open_keeper[:, None, None].expand(-1, 1, 2)).squeeze(1)
+    to_ball = ball_pos - kpos
+    step = torch.minimum(norm(to_ball), torch.full_like(to_ball[..., 0], MARK_DISTANCE))
+    return kpos + step.unsqueeze(-1) * unit(direction(to_ball))
+
+
+def block_pass(
+    pos: Tensor, vel: Tensor, body: Tensor, target: Tensor, ball_pos: Tensor, physics: PhysicsParams
+) -> Tensor:
+    """BlockPass movement: face the ball within 2 m of the point, else move there (25 degrees)."""
+    move = move_to_point(pos, vel, body, target, MARK_TURN, physics)
+    face = face_point(pos, vel, body, ball_pos, physics)
+    return choose(norm(pos - target) < MARK_BUFFER, face, move)
