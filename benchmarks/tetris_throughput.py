@@ -59,17 +59,20 @@ def bench_fused(rules: TetrisRules, seconds: float) -> dict[str, float]:
     return {"placements_per_s": pps, "afterstates_per_s": pps * mean_afterstates(rules.width)}
 
 
-def bench_engine(rules: TetrisRules, batch: int, seconds: float, engine: str) -> dict[str, float]:
+def bench_engine(
+    rules: TetrisRules, batch: int, seconds: float, engine: str, device: str = "cpu"
+) -> dict[str, float]:
     """Batched engine calls without TorchRL: afterstates() + greedy choice + step()."""
     if engine == "numba":
         eng = NumbaEngine(rules, batch, BT)
     else:
         from hfrl_torch.envs.tetris.engine_torch import TorchEngine
 
-        eng = TorchEngine(rules, batch, BT)
-    w = bt_policy(rules.width).expand(batch, -1)
+        eng = TorchEngine(rules, batch, BT, device=device)
+    w = bt_policy(rules.width).expand(batch, -1).to(device)
     gen = torch.Generator().manual_seed(0)
-    eng.reset(torch.ones(batch, dtype=torch.bool), torch.randint(0, 2**62, (batch,), generator=gen))
+    seeds = torch.randint(0, 2**62, (batch,), generator=gen)
+    eng.reset(torch.ones(batch, dtype=torch.bool, device=device), seeds.to(device))
     placements = afterstates = 0
     steps, t0 = 0, time.perf_counter()
     while time.perf_counter() - t0 < seconds or steps < 3:
@@ -81,7 +84,7 @@ def bench_engine(rules: TetrisRules, batch: int, seconds: float, engine: str) ->
         afterstates += int(mask.sum())
         dead = ~torch.as_tensor(eng.alive)
         if dead.any():
-            eng.reset(dead, torch.randint(0, 2**62, (batch,), generator=gen))
+            eng.reset(dead, torch.randint(0, 2**62, (batch,), generator=gen).to(device))
         steps += 1
     dt = time.perf_counter() - t0
     return {"placements_per_s": placements / dt, "afterstates_per_s": afterstates / dt}
@@ -156,6 +159,11 @@ def main() -> None:
         }
     except ImportError as exc:
         out["torch_engine_cpu"] = f"unavailable: {exc}"
+    if torch.cuda.is_available():
+        big = [*args.batches, 16384]
+        out["torch_engine_cuda"] = {
+            f"B={b}": bench_engine(rules, b, args.seconds, "torch", "cuda") for b in big
+        }
     ref = bench_tetris_gymnasium(args.seconds)
     out["tetris_gymnasium_grouped"] = ref
     if isinstance(ref, dict):
