@@ -70,6 +70,32 @@ class Trainer(ABC):
     def end_games(self, done: torch.Tensor, lines: torch.Tensor) -> None:  # noqa: B027  (optional hook)
         """Told that the games of the boards where ``done`` [B] is set ended with ``lines`` [B] lines."""
 
+    def _one_per_board(
+        self,
+        values: torch.Tensor,
+        give: torch.Tensor,
+        time: float,
+        obs: TensorDictBase,
+        episode: torch.Tensor,
+    ) -> Events:
+        """One event valued ``values[b]`` at ``time`` on each board b where ``give[b]``, then logged."""
+        steps = placement_steps(obs)
+        events: Events = [
+            [
+                FeedbackEvent(
+                    time=time,
+                    value=float(values[i]),
+                    source=self.source,
+                    step=int(steps[i]),
+                    episode=int(episode[i]),
+                )
+            ]
+            if give[i]
+            else []
+            for i in range(give.shape[0])
+        ]
+        return self._emit(events)
+
     def _emit(self, events: Events) -> Events:
         """Append every event to the log (each board's under its own session label) and count them."""
         self.given += sum(len(e) for e in events)

@@ -12,9 +12,8 @@ import torch
 from tensordict import TensorDictBase
 
 from hfrl_torch.envs.tetris.features import DELLACHERIE_WEIGHTS
-from hfrl_torch.feedback.events import FeedbackEvent
 from hfrl_torch.feedback.log import FeedbackLog
-from hfrl_torch.trainers.base import Events, Trainer, all_active, placement_steps
+from hfrl_torch.trainers.base import Events, Trainer, all_active
 from hfrl_torch.trainers.reference_policy import evaluate_placements
 
 
@@ -79,18 +78,4 @@ class OracleTrainer(Trainer):
         speaks = torch.rand(b, generator=self.generator, dtype=torch.float64) < self.frequency
         flips = torch.rand(b, generator=self.generator, dtype=torch.float64) >= self.consistency
         h = torch.where(flips, -1.0, 1.0) * self.judge(obs, action, act)
-        steps = placement_steps(obs)
-        events: Events = []
-        for i in range(b):
-            if not (act[i] and speaks[i]):
-                events.append([])
-                continue
-            ev = FeedbackEvent(
-                time=time + self.reaction,
-                value=float(h[i]),
-                source=self.source,
-                step=int(steps[i]),
-                episode=int(episode[i]),
-            )
-            events.append([ev])
-        return self._emit(events)
+        return self._one_per_board(h, act & speaks, time + self.reaction, obs, episode)

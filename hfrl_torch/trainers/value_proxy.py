@@ -14,9 +14,9 @@ import torch
 from tensordict import TensorDictBase
 
 from hfrl_torch.envs.tetris.features import DELLACHERIE_WEIGHTS
-from hfrl_torch.feedback.events import MAX_ABS_FEEDBACK, FeedbackEvent
+from hfrl_torch.feedback.events import MAX_ABS_FEEDBACK
 from hfrl_torch.feedback.log import FeedbackLog
-from hfrl_torch.trainers.base import Events, Trainer, all_active, placement_steps
+from hfrl_torch.trainers.base import Events, Trainer, all_active
 from hfrl_torch.trainers.reference_policy import evaluate_placements
 
 MODES = ("sign", "scaled")
@@ -82,18 +82,4 @@ class ValueProxyTrainer(Trainer):
             h = torch.sign(change)
         else:
             h = (self.scale * change).clamp(-MAX_ABS_FEEDBACK, MAX_ABS_FEEDBACK)
-        steps = placement_steps(obs)
-        events: Events = []
-        for i in range(act.shape[0]):
-            if not act[i] or h[i] == 0:
-                events.append([])
-                continue
-            ev = FeedbackEvent(
-                time=time + self.reaction,
-                value=float(h[i]),
-                source=self.source,
-                step=int(steps[i]),
-                episode=int(episode[i]),
-            )
-            events.append([ev])
-        return self._emit(events)
+        return self._one_per_board(h, act & (h != 0), time + self.reaction, obs, episode)
