@@ -106,3 +106,28 @@ def test_corrupt_and_wrong_domain_checkpoints_fail_cleanly(trained, tmp_path):
     torch.save(blob, other)
     out = run("evaluate.py", f"policy={other}")
     assert out.returncode == 2 and "is for domain 'keepaway', not 'tetris'" in out.stderr
+
+
+def test_tamer_with_a_simulated_oracle_then_evaluate_then_replay_its_log(tmp_path):
+    first = tmp_path / "tamer"
+    args = ["agent=tamer", "trainer=oracle", "agent.learners=3", "agent.games=2", "domain.height=8"]
+    out = run("train.py", *args, f"hydra.run.dir={first}")
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "simulated oracle trainer" in out.stderr and "Feedback log:" in out.stderr
+    from hfrl_torch.feedback.log import load_feedback_log
+
+    events = load_feedback_log(first / "feedback.jsonl")
+    assert events and all(e.source == "simulated:oracle" for e in events)
+    assert [json.loads(x)["game"] for x in (first / "metrics.jsonl").read_text().splitlines()] == [1, 2]
+
+    ev = run("evaluate.py", f"policy={first}", "games=3")
+    assert ev.returncode == 0, ev.stderr[-2000:]
+    assert json.loads(ev.stdout.strip().splitlines()[-1])["features"] == "knox"
+
+    second = tmp_path / "replay"
+    rep = [*args[:1], "trainer=replay", f"trainer.log={first / 'feedback.jsonl'}", *args[2:]]
+    out = run("train.py", *rep, f"hydra.run.dir={second}")
+    assert out.returncode == 0, out.stderr[-2000:]
+    replayed = load_feedback_log(second / "feedback.jsonl")
+    assert replayed and all(e.source == "replay" for e in replayed)
+    assert len(replayed) <= len(events)

@@ -41,6 +41,7 @@ def test_defaults_are_valid():
         ("device=tpu", "device='tpu' is invalid; allowed: cpu, cuda, cuda:N"),
         ("threads=0", "threads=0 is invalid: must be an integer in 1..256"),
         ("logger.backend=wandb", "logger.backend='wandb' is invalid; allowed: tensorboard, none"),
+        ("trainer=oracle", "trainer='oracle' with agent=cem needs a fusion scheme"),
     ],
 )
 def test_bad_values(override, message):
@@ -53,7 +54,7 @@ def test_unknown_group_option_names_the_allowed_ones(capsys):
     with pytest.raises(SystemExit) as info:
         check_group_choices(["agent=nosuch"])
     assert info.value.code == 2
-    assert capsys.readouterr().err.strip() == "error: unknown agent 'nosuch'; allowed: cem"
+    assert capsys.readouterr().err.strip() == "error: unknown agent 'nosuch'; allowed: cem, tamer"
     check_group_choices(["domain=tetris", "domain.width=8", "-m"])  # valid ones pass
 
 
@@ -109,3 +110,49 @@ def test_keepaway_preset_given_as_a_number_on_the_command_line_is_accepted():
     from hfrl_torch.experiment.evaluate import keepaway_config
 
     assert keepaway_config(_cfg("evaluate", "domain=keepaway", "domain.preset=2005")).preset == "2005"
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (
+            ["trainer=none"],
+            "agent=tamer learns only from feedback; choose a trainer: oracle, value_proxy, replay",
+        ),
+        (["trainer=oracle", "agent.alpha=-1"], "agent.alpha=-1 is invalid: must be a number >= 1e-12"),
+        (["trainer=oracle", "agent.credit=soon"], "agent.credit='soon' is invalid; allowed: previous_step"),
+        (["trainer=oracle", "agent.features=dt"], "agent.features='dt' is invalid; allowed: knox, bt"),
+        (
+            ["trainer=oracle", "trainer.frequency=1.5"],
+            "trainer.frequency=1.5 is invalid: must be a number in 0.0..1.0",
+        ),
+        (["trainer=oracle", "trainer.consistency=-0.1"], "trainer.consistency=-0.1 is invalid"),
+        (
+            ["trainer=value_proxy", "trainer.mode=loud"],
+            "trainer.mode='loud' is invalid; allowed: sign, scaled",
+        ),
+        (["trainer=replay"], "trainer=replay needs trainer.log=<feedback log file>"),
+    ],
+)
+def test_tamer_and_trainer_bad_values(overrides, message):
+    from hfrl_torch.experiment.factories import make_trainer
+
+    cfg = _cfg("train", "agent=tamer", *overrides)
+    with pytest.raises(ConfigError) as info:
+        validate_train_config(cfg)
+        make_trainer(cfg, None)
+    assert message in str(info.value)
+
+
+def test_trainer_factory_builds_the_simulated_trainers():
+    from hfrl_torch.experiment.factories import make_trainer
+    from hfrl_torch.trainers import HumanLikeTiming, OracleTrainer, ValueProxyTrainer
+
+    oracle = make_trainer(_cfg("train", "agent=tamer", "trainer=oracle"), None)
+    assert isinstance(oracle, HumanLikeTiming) and isinstance(oracle.trainer, OracleTrainer)
+    assert oracle.trainer.frequency == 0.5 and oracle.trainer.consistency == 0.9
+    plain = make_trainer(
+        _cfg("train", "agent=tamer", "trainer=value_proxy", "trainer.timing.enabled=false"), None
+    )
+    assert isinstance(plain, ValueProxyTrainer)
+    assert make_trainer(_cfg("train"), None) is None

@@ -78,6 +78,23 @@ def make_logger(backend: str, log_dir: str | Path, purge_step: int | None = None
     raise ValueError(f"logger.backend={backend!r} is invalid; allowed: {', '.join(BACKENDS)}")
 
 
+def flatten_config(cfg: Any) -> dict[str, object]:
+    """A resolved OmegaConf config as ``{"agent.population": 100, ...}`` (for hparams tables)."""
+    from omegaconf import OmegaConf
+
+    out: dict[str, object] = {}
+
+    def walk(node: object, prefix: str) -> None:
+        if isinstance(node, dict):
+            for k, v in node.items():
+                walk(v, f"{prefix}{k}.")
+        else:
+            out[prefix.rstrip(".")] = node
+
+    walk(OmegaConf.to_container(cfg, resolve=True), "")
+    return out
+
+
 def markdown_table(values: dict[str, Any]) -> str:
     """A two-column markdown table of parameters, as CleanRL writes its hyper-parameters."""
     rows = "\n".join(f"|{k}|{v}|" for k, v in values.items())

@@ -10,7 +10,7 @@ import re
 
 import numba
 import torch
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from hfrl_torch.agents.cem import CEMConfig
 from hfrl_torch.agents.cem.cem import NOISE_SCHEDULES, Rollout
@@ -20,11 +20,14 @@ from hfrl_torch.common.validation import require_bool, require_choice, require_f
 from hfrl_torch.envs.tetris.env import ENGINES, TetrisEnv
 from hfrl_torch.envs.tetris.features import feature_id
 from hfrl_torch.envs.tetris.rules import TetrisRules
+from hfrl_torch.feedback.credit import CreditModel, GammaDelay, PreviousStep, UniformDelay
+from hfrl_torch.feedback.log import FeedbackLog
 
 DOMAINS = ("tetris",)
-AGENTS = ("cem",)
+AGENTS = ("cem", "tamer")
 FUSIONS = ("none",)
-TRAINERS = ("none",)
+TRAINERS = ("none", "oracle", "value_proxy", "replay")
+CREDITS = ("previous_step", "gamma", "uniform")
 FEATURE_SETS = ("bt", "knox", "dellacherie", "dt")
 
 
@@ -110,7 +113,7 @@ def make_rollout(cfg: DictConfig, features: str | None = None) -> Rollout:
 
 def make_cem_config(cfg: DictConfig) -> CEMConfig:
     """CE settings from ``agent``."""
-    require_choice(cfg, "agent.name", AGENTS)
+    require_choice(cfg, "agent.name", ("cem",))
     require_int(cfg, "agent.iterations", 1)
     return CEMConfig(
         population=require_int(cfg, "agent.population", 2),
@@ -126,9 +129,81 @@ def make_cem_config(cfg: DictConfig) -> CEMConfig:
     )
 
 
+def make_credit(cfg: DictConfig) -> CreditModel:
+    """TAMER's credit assignment from ``agent.credit``."""
+    name = require_choice(cfg, "agent.credit", CREDITS)
+    if name == "previous_step":
+        return PreviousStep()
+    if name == "gamma":
+        return GammaDelay(
+            require_float(cfg, "agent.gamma_shape", 1e-6), require_float(cfg, "agent.gamma_scale", 1e-6)
+        )
+    low = require_float(cfg, "agent.uniform_low", 0.0)
+    return UniformDelay(low, require_float(cfg, "agent.uniform_high", low + 1e-6))
+
+
+def check_tamer(cfg: DictConfig) -> None:
+    """Check ``agent`` for TAMER."""
+    require_int(cfg, "agent.games", 1)
+    require_int(cfg, "agent.learners", 1, 100_000)
+    require_float(cfg, "agent.alpha", 1e-12)
+    require_choice(cfg, "agent.features", ("knox", "bt"))
+    make_credit(cfg)
+    require_float(cfg, "agent.window", 1e-6)
+    require_bool(cfg, "agent.renormalise")
+    require_float(cfg, "agent.seconds_per_placement", 1e-6)
+
+
+def make_trainer(cfg: DictConfig, log: FeedbackLog | None):
+    """The simulated trainer (or replay) of ``trainer``, logging every event it gives to ``log``."""
+    from hfrl_torch.trainers import HumanLikeTiming, OracleTrainer, ReplayTrainer, ValueProxyTrainer
+
+    name = require_choice(cfg, "trainer.name", TRAINERS)
+    if name == "none":
+        return None
+    reaction = require_float(cfg, "trainer.reaction", 1e-6)
+    if name == "oracle":
+        base = OracleTrainer(
+            frequency=require_float(cfg, "trainer.frequency", 0.0, 1.0),
+            consistency=require_float(cfg, "trainer.consistency", 0.0, 1.0),
+            seed=int(cfg.seed) * 2 + 1,
+            reaction=reaction,
+        )
+    elif name == "value_proxy":
+        base = ValueProxyTrainer(
+            mode=require_choice(cfg, "trainer.mode", ("sign", "scaled")),
+            scale=require_float(cfg, "trainer.scale", 1e-12),
+            reaction=reaction,
+        )
+    else:
+        path = OmegaConf.select(cfg, "trainer.log")
+        if not path:
+            raise ConfigError("trainer=replay needs trainer.log=<feedback log file>")
+        base = ReplayTrainer.from_log(path, reaction=reaction)
+    if not require_bool(cfg, "trainer.timing.enabled"):
+        base.log = log
+        return base
+    fatigue = OmegaConf.select(cfg, "trainer.timing.fatigue_tau")
+    tail = OmegaConf.select(cfg, "trainer.timing.tail_lines")
+    return HumanLikeTiming(
+        base,
+        delay=GammaDelay(
+            require_float(cfg, "trainer.timing.delay_shape", 1e-6),
+            require_float(cfg, "trainer.timing.delay_scale", 1e-6),
+        ),
+        fatigue_tau=None if fatigue is None else require_float(cfg, "trainer.timing.fatigue_tau", 1e-6),
+        positive_bias=require_float(cfg, "trainer.timing.positive_bias", 0.0, 1.0),
+        absence=require_float(cfg, "trainer.timing.absence", 0.0, 1.0),
+        tail_lines=None if tail is None else require_float(cfg, "trainer.timing.tail_lines", 1e-6),
+        seed=int(cfg.seed) * 2 + 2,
+        log=log,
+    )
+
+
 def check_run(cfg: DictConfig) -> None:
     """Check the top-level and the not-yet-implemented groups."""
     require_int(cfg, "seed", 0, 2**62)
+    require_choice(cfg, "agent.name", AGENTS)
     require_choice(cfg, "fusion.name", FUSIONS)
     require_choice(cfg, "trainer.name", TRAINERS)
     require_choice(cfg, "logger.backend", BACKENDS)
@@ -150,5 +225,21 @@ def validate_train_config(cfg: DictConfig) -> None:
     check_run(cfg)
     make_rules(cfg)
     check_domain(cfg)
-    make_cem_config(cfg)
     require_int(cfg, "threads", 1, 256)
+    agent = require_choice(cfg, "agent.name", AGENTS)
+    trainer = cfg.trainer.name
+    if agent == "cem":
+        make_cem_config(cfg)
+        if trainer != "none":
+            raise ConfigError(
+                f"trainer={trainer!r} with agent=cem needs a fusion scheme, which is not built yet; "
+                "allowed with cem: trainer=none (use agent=tamer to learn from a trainer)"
+            )
+    else:
+        check_tamer(cfg)
+        if trainer == "none":
+            raise ConfigError(
+                "agent=tamer learns only from feedback; choose a trainer: oracle, value_proxy, replay"
+            )
+        if trainer == "replay" and not OmegaConf.select(cfg, "trainer.log"):
+            raise ConfigError("trainer=replay needs trainer.log=<feedback log file>")

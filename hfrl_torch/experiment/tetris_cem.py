@@ -11,7 +11,7 @@ from tqdm import tqdm
 
 from hfrl_torch.agents.cem import CrossEntropyMethod
 from hfrl_torch.common.checkpoint import LAST, save_checkpoint
-from hfrl_torch.common.logger import markdown_table
+from hfrl_torch.common.logger import flatten_config, markdown_table
 from hfrl_torch.common.stats import summarize
 from hfrl_torch.envs.tetris.features import feature_id, feature_names
 from hfrl_torch.experiment.factories import (
@@ -37,7 +37,7 @@ def train_cem(cfg: DictConfig, run_dir: Path, checkpoint: dict | None) -> dict[s
     start = cem.iteration
     logger = make_run_logger(cfg, str(run_dir / "tensorboard"), purge_step=start if start > 0 else None)
     if start == 0:
-        logger.text("hyperparameters", markdown_table(_flat(cfg)))
+        logger.text("hyperparameters", markdown_table(flatten_config(cfg)))
         logger.text(
             "rules", f"{rules.describe()}, board {rules.width}x{rules.height}, features {cfg.domain.features}"
         )
@@ -88,7 +88,7 @@ def train_cem(cfg: DictConfig, run_dir: Path, checkpoint: dict | None) -> dict[s
                         "feature_names": names,
                         "weights": cem.mean.clone(),
                     },
-                    "rules": _rules_dict(rules),
+                    "rules": rules.as_dict(),
                 },
             )
             with metrics_file.open("a") as f:
@@ -105,32 +105,8 @@ def train_cem(cfg: DictConfig, run_dir: Path, checkpoint: dict | None) -> dict[s
         final = history[-1] if history else {}
         if history and cem.iteration >= cfg.agent.iterations:
             logger.hparams(
-                _flat(cfg),
+                flatten_config(cfg),
                 {"hparam/eval_lines_mean": final["eval/mean_policy_lines_mean"]},
             )
         logger.close()
     return final
-
-
-def _rules_dict(rules) -> dict[str, object]:
-    return {
-        "width": rules.width,
-        "height": rules.height,
-        "bag": rules.bag,
-        "spawn_topout": rules.spawn_topout,
-        "preview": rules.preview,
-    }
-
-
-def _flat(cfg: DictConfig) -> dict[str, object]:
-    out: dict[str, object] = {}
-
-    def walk(node: object, prefix: str) -> None:
-        if isinstance(node, dict):
-            for k, v in node.items():
-                walk(v, f"{prefix}{k}." if prefix or k else k)
-        else:
-            out[prefix.rstrip(".")] = node
-
-    walk(OmegaConf.to_container(cfg, resolve=True), "")
-    return out

@@ -10,14 +10,23 @@ not counted.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
+from pathlib import Path
 
 import torch
+from omegaconf import DictConfig, OmegaConf
+from tqdm import tqdm
 
 from hfrl_torch import keys
 from hfrl_torch.agents.tamer import TamerAgent
+from hfrl_torch.common.checkpoint import LAST, save_checkpoint
+from hfrl_torch.common.logger import flatten_config, markdown_table
+from hfrl_torch.common.stats import summarize
 from hfrl_torch.envs.tetris import TetrisEnv, TetrisRules
+from hfrl_torch.envs.tetris.features import feature_id, feature_names
 from hfrl_torch.feedback.credit import CreditModel
+from hfrl_torch.feedback.log import FeedbackLog
 from hfrl_torch.trainers.base import Trainer
 
 
@@ -37,6 +46,7 @@ def run_tamer(
     seconds_per_placement: float = 1.0,
     clock: Callable[[], float] | None = None,
     agent: TamerAgent | None = None,
+    on_games_done: Callable[[int], None] | None = None,
 ) -> dict[str, object]:
     """Train ``learners`` independent TAMER learners for ``games`` games each with ``trainer``'s feedback.
 
@@ -55,8 +65,10 @@ def run_tamer(
         falling animation: about five primitive moves at 5 per second).
     :param clock: a real clock (e.g. ``time.time``) for a live trainer instead of the simulated one.
     :param agent: a TamerAgent to continue training (default a new one with weights 0).
+    :param on_games_done: called with the number of games that just ended (for a progress bar).
     :return: ``lines`` and ``pieces`` [learners, games] int64, ``feedback``, ``positive``, ``negative``
-        (events given per learner) and ``applied`` (events learned from) [learners], ``weights``
+        (events given per learner) and ``applied`` (events learned from) [learners], ``given_per_game``
+        [learners, games, 3] (events given during each game: all, positive, negative), ``weights``
         [learners, F], ``agent`` and ``alpha``.
     """
     if games < 1 or learners < 1:
@@ -67,7 +79,7 @@ def run_tamer(
     lines = torch.zeros(learners, games, dtype=torch.int64)
     pieces = torch.zeros(learners, games, dtype=torch.int64)
     played = torch.zeros(learners, dtype=torch.int64)
-    given = torch.zeros(learners, 3, dtype=torch.int64)  # all, positive, negative
+    given = torch.zeros(learners, games, 3, dtype=torch.int64)  # all, positive, negative
     placement = 0
 
     td = env.reset()
@@ -81,9 +93,10 @@ def run_tamer(
         agent.record(td, action, now, active)
         agent.give_feedback(events, active)
         for i, evs in enumerate(events):
-            given[i, 0] += len(evs)
-            given[i, 1] += sum(e.value > 0 for e in evs)
-            given[i, 2] += sum(e.value < 0 for e in evs)
+            g = min(int(played[i]), games - 1)
+            given[i, g, 0] += len(evs)
+            given[i, g, 1] += sum(e.value > 0 for e in evs)
+            given[i, g, 2] += sum(e.value < 0 for e in evs)
 
         td[keys.ACTION] = action
         td, td_next = env.step_and_maybe_reset(td)
@@ -96,17 +109,104 @@ def run_tamer(
             pieces[rows, idx[rows]] = td["next", keys.PIECES_PLACED].view(-1)[rows]
             trainer.end_games(done, game_lines)
             played += done.to(torch.int64)
+            if on_games_done is not None:
+                on_games_done(int(done.sum()))
         td = td_next
         placement += 1
 
     return {
         "lines": lines,
         "pieces": pieces,
-        "feedback": given[:, 0],
-        "positive": given[:, 1],
-        "negative": given[:, 2],
+        "feedback": given[..., 0].sum(1),
+        "positive": given[..., 1].sum(1),
+        "negative": given[..., 2].sum(1),
+        "given_per_game": given,
         "applied": agent.applied.clone(),
         "weights": agent.model.weight.detach().clone(),
         "agent": agent,
         "alpha": alpha,
     }
+
+
+def train_tamer(cfg: DictConfig, run_dir: Path) -> dict[str, float]:
+    """``train.py agent=tamer``: run TAMER learners with the configured trainer, log and checkpoint.
+
+    TensorBoard gets one point per game (x = game number): lines per game over learners with a 95 %
+    interval, feedback given and its positive share; the trainer is named in the logs as what it is
+    (a simulated trainer or a replayed log). Every event goes to ``feedback.jsonl`` as it is given.
+    """
+    from hfrl_torch.experiment.factories import make_credit, make_rules, make_run_logger, make_trainer
+
+    rules = make_rules(cfg)
+    a = cfg.agent
+    log = FeedbackLog(run_dir / "feedback.jsonl", session=run_dir.name)
+    trainer = make_trainer(cfg, log)
+    source = trainer.source if trainer.source != "trainer" else f"simulated:{cfg.trainer.name}"
+    logger = make_run_logger(cfg, str(run_dir / "tensorboard"), purge_step=None)
+    logger.text("hyperparameters", markdown_table(flatten_config(cfg)))
+    logger.text(
+        "trainer", f"{source} (trainer={cfg.trainer.name}; a simulated or replayed trainer, not a person)"
+    )
+
+    bar = tqdm(total=a.learners * a.games, desc=f"TAMER {rules.width}x{rules.height}", unit="game")
+    try:
+        out = run_tamer(
+            rules,
+            a.games,
+            trainer,
+            a.alpha,
+            learners=a.learners,
+            seed=cfg.seed,
+            features=a.features,
+            credit=make_credit(cfg),
+            window=a.window,
+            renormalise=a.renormalise,
+            max_pieces=cfg.domain.max_pieces,
+            seconds_per_placement=a.seconds_per_placement,
+            on_games_done=bar.update,
+        )
+    finally:
+        bar.close()
+        log.close()
+
+    lines, given = out["lines"].double(), out["given_per_game"].double()
+    history = []
+    for g in range(a.games):
+        s = summarize(lines[:, g])
+        fb = given[:, g, 0]
+        metrics = {
+            "eval/lines_per_game_mean": s["mean"],
+            "eval/lines_per_game_median": s["median"],
+            "eval/lines_per_game_ci95_low": s["ci95_low"],
+            "eval/lines_per_game_ci95_high": s["ci95_high"],
+            "feedback/given_mean": float(fb.mean()),
+            "feedback/positive_share": float(given[:, g, 1].sum() / fb.sum()) if fb.sum() > 0 else 0.0,
+        }
+        logger.scalars(metrics, g + 1)
+        history.append({"game": g + 1, **metrics})
+    with (run_dir / "metrics.jsonl").open("w") as f:
+        f.writelines(json.dumps(h) + "\n" for h in history)
+    weights = out["weights"]
+    save_checkpoint(
+        run_dir / "checkpoints" / LAST,
+        domain="tetris",
+        agent="tamer",
+        config_yaml=OmegaConf.to_yaml(cfg, resolve=True),
+        payload={
+            "state": {"weights": weights.clone(), "lines": out["lines"].clone()},
+            "history": history,
+            # argmax_a w.(f(s'_a) - f(s)) = argmax_a w.f(s'_a): H^ acts as a linear afterstate policy
+            "policy": {
+                "kind": "linear",
+                "features": a.features,
+                "feature_names": feature_names(feature_id(a.features), rules.width),
+                "weights": weights[0].clone(),
+                "note": "learner 0 of the run",
+            },
+            "rules": rules.as_dict(),
+        },
+    )
+    final = history[-1]
+    logger.hparams(flatten_config(cfg), {"hparam/lines_last_game": final["eval/lines_per_game_mean"]})
+    logger.close()
+    return {**final, "feedback_events": float(out["feedback"].sum())}

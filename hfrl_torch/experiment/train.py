@@ -13,8 +13,14 @@ from hfrl_torch.common.checkpoint import LAST, load_checkpoint
 from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.experiment.factories import set_threads, validate_train_config
 from hfrl_torch.experiment.tetris_cem import train_cem
+from hfrl_torch.experiment.tetris_tamer import train_tamer
 
 GROUPS = ("domain", "agent", "fusion", "trainer", "logger")
+TRAINER_LABELS = {
+    "oracle": "simulated oracle trainer",
+    "value_proxy": "simulated value-proxy trainer",
+    "replay": "replayed feedback log",
+}
 
 
 def resume_config(cfg: DictConfig, run_dir: Path, checkpoint: dict, overrides: list[str]) -> DictConfig:
@@ -64,6 +70,8 @@ def train(cfg: DictConfig) -> Path:
     domain, agent = cfg.domain.name, cfg.agent.name
     if checkpoint is not None and (checkpoint["domain"], checkpoint["agent"]) != (domain, agent):
         raise ConfigError(f"resume={str(run_dir)!r} holds a {checkpoint['domain']}/{checkpoint['agent']} run")
+    if checkpoint is not None and agent != "cem":
+        raise ConfigError(f"agent={agent!r} runs are not resumable (they last seconds); start a new run")
     (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
 
     print(f"Run directory: {run_dir}  ({domain}, {agent}, threads={threads})", file=sys.stderr)
@@ -71,7 +79,7 @@ def train(cfg: DictConfig) -> Path:
     signal.signal(signal.SIGTERM, _interrupt)  # a scheduler's stop ends the run like Ctrl-C
     signal.signal(signal.SIGINT, _interrupt)
     try:
-        final = train_cem(cfg, run_dir, checkpoint)
+        final = train_cem(cfg, run_dir, checkpoint) if agent == "cem" else train_tamer(cfg, run_dir)
     except KeyboardInterrupt:
         interrupted = True
         final = {}
@@ -80,10 +88,19 @@ def train(cfg: DictConfig) -> Path:
     if interrupted:
         lines.append("Interrupted. Every finished iteration is saved; continue with:")
         lines.append(f"  python train.py resume={run_dir}")
-    elif final:
+    elif final and agent == "cem":
         low, high = final["eval/mean_policy_lines_ci95_low"], final["eval/mean_policy_lines_ci95_high"]
         mean = final["eval/mean_policy_lines_mean"]
         lines.append(f"Done: mean policy {mean:.1f} lines per game (95% CI {low:.1f}..{high:.1f})")
+    elif final:
+        low, high = final["eval/lines_per_game_ci95_low"], final["eval/lines_per_game_ci95_high"]
+        mean, game = final["eval/lines_per_game_mean"], final["game"]
+        who = TRAINER_LABELS.get(cfg.trainer.name, cfg.trainer.name)
+        lines.append(
+            f"Done: game {game} of {cfg.agent.learners} learners: {mean:.1f} lines per game "
+            f"(95% CI {low:.1f}..{high:.1f}), from {final['feedback_events']:.0f} events of the {who}"
+        )
+        lines.append(f"Feedback log:     {run_dir / 'feedback.jsonl'}")
     lines += [
         f"Logs and config:  {run_dir}",
         f"Checkpoint:       {ckpt}",

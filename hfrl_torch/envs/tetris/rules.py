@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 
 @dataclass(frozen=True)
@@ -34,3 +34,7 @@ class TetrisRules:
             n for n, on in (("bag", self.bag), ("topout", self.spawn_topout), ("preview", self.preview)) if on
         ]
         return "+".join(["simplified", *extra])
+
+    def as_dict(self) -> dict[str, object]:
+        """The rules as plain values (for checkpoints)."""
+        return asdict(self)
