@@ -52,6 +52,17 @@ def resume_config(cfg: DictConfig, run_dir: Path, checkpoint: dict, overrides: l
     return merged
 
 
+def _commands() -> tuple[str, str]:
+    """How to call python and tensorboard as the user can type it (the venv's, if it is not active)."""
+    exe = Path(sys.executable)
+    board = exe.parent / "tensorboard"
+    try:
+        rel = exe.relative_to(Path.cwd())
+    except ValueError:
+        return "python", "tensorboard"
+    return str(rel), str(rel.parent / "tensorboard") if board.exists() else "tensorboard"
+
+
 def _interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
@@ -101,12 +112,11 @@ def train(cfg: DictConfig) -> Path:
             f"(95% CI {low:.1f}..{high:.1f}), from {final['feedback_events']:.0f} events of the {who}"
         )
         lines.append(f"Feedback log:     {run_dir / 'feedback.jsonl'}")
-    lines += [
-        f"Logs and config:  {run_dir}",
-        f"Checkpoint:       {ckpt}",
-        f"TensorBoard:      tensorboard --logdir {run_dir / 'tensorboard'}",
-        f"Evaluate:         python evaluate.py policy={run_dir}",
-    ]
+    python, tensorboard = _commands()
+    lines += [f"Logs and config:  {run_dir}", f"Checkpoint:       {ckpt}"]
+    if cfg.logger.backend == "tensorboard":
+        lines.append(f"TensorBoard:      {tensorboard} --logdir {run_dir / 'tensorboard'}")
+    lines.append(f"Evaluate:         {python} evaluate.py policy={run_dir}")
     print("\n".join(lines), file=sys.stderr)
     if interrupted:
         sys.exit(130)
