@@ -100,7 +100,7 @@ def evaluate_tetris(cfg: DictConfig, progress: bool = True) -> dict[str, object]
     lines_t, pieces_t = torch.cat(lines), torch.cat(pieces)
     cap = int(cfg.domain.max_pieces)
     capped = int((pieces_t >= cap).sum()) if cap > 0 else 0
-    s = summarize(lines_t)
+    s = summarize(lines_t, floor=0.0)
     return {
         "domain": "tetris",
         "policy": label,

@@ -58,7 +58,7 @@ def train_cem(cfg: DictConfig, run_dir: Path, checkpoint: dict | None) -> dict[s
             metrics = cem.step()
             eval_lines = cem.evaluate_mean()
             elapsed = time.perf_counter() - t0
-            ev = summarize(eval_lines)
+            ev = summarize(eval_lines, floor=0.0)
             placements = metrics["population/placements"] + cem.last_eval_pieces
             metrics.update(
                 {

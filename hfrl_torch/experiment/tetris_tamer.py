@@ -172,7 +172,7 @@ def train_tamer(cfg: DictConfig, run_dir: Path) -> dict[str, float]:
     lines, given = out["lines"].double(), out["given_per_game"].double()
     history = []
     for g in range(a.games):
-        s = summarize(lines[:, g])
+        s = summarize(lines[:, g], floor=0.0)
         fb = given[:, g, 0]
         metrics = {
             "eval/lines_per_game_mean": s["mean"],

@@ -99,7 +99,7 @@ class CrossEntropyMethod:
         self.variance = candidates[elite].var(0, unbiased=False) + self.noise(t)
         self.iteration += 1
 
-        pop = summarize(scores)
+        pop = summarize(scores, floor=0.0)
         return {
             "population/lines_mean": pop["mean"],
             "population/lines_median": pop["median"],
