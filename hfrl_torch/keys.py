@@ -24,7 +24,8 @@ PIECE = "piece"
 NEXT_PIECE = "next_piece"
 LINES = "lines"  # lines cleared so far in the current game
 PIECES_PLACED = "pieces_placed"
-GAME_SEED = "game_seed"
+GAME_SEED = "game_seed"  # observation: the seed of each board's current game
+RESET_GAME_SEED = "reset_game_seed"  # reset input: play these seeds (replay given games)
 
 # keepaway
 OBSERVATION = "observation"  # deciding keeper's state variables
@@ -39,3 +40,4 @@ FEEDBACK = "human_feedback"
 FEEDBACK_TIME = "human_feedback_time"
 FEEDBACK_SOURCE = "human_feedback_source"
 ENV_REWARD = "env_reward"
+HUMAN_REWARD_ESTIMATE = "human_reward_estimate"  # H^(s, a) of the action taken, for reward-level fusion

@@ -60,7 +60,11 @@ def test_partial_reset_only_touches_flagged_boards():
 def test_same_seed_same_games_and_given_game_seed():
     def play(seed, game_seeds=None):
         env = TetrisEnv(batch=3, rules=TetrisRules(10, 10), seed=seed)
-        td = env.reset() if game_seeds is None else env.reset(env.reset().set(keys.GAME_SEED, game_seeds))
+        td = (
+            env.reset()
+            if game_seeds is None
+            else env.reset(env.reset().set(keys.RESET_GAME_SEED, game_seeds))
+        )
         total = torch.zeros(3)
         pieces = []
         for _ in range(40):
@@ -149,3 +153,12 @@ def test_greedy_placement_avoids_losing_moves_but_scores_the_best_one_when_all_l
     # board 0: the best non-terminal valid placement (2); board 1: all lose, so the best of them (2)
     assert greedy_placement(values, mask, terminal).tolist() == [2, 2]
     assert greedy_placement(values, mask).tolist() == [0, 2]
+
+
+def test_partial_reset_with_the_current_data_starts_new_games():
+    # TorchRL's convention passes the current tensordict (with its game_seed observation) plus "_reset"
+    env = TetrisEnv(batch=2, rules=TetrisRules(10, 10), seed=5)
+    td = env.reset()
+    old = td[keys.GAME_SEED].clone()
+    after = env.reset(td.clone().set(keys.RESET, torch.tensor([[True], [False]])))
+    assert after[keys.GAME_SEED][0] != old[0] and after[keys.GAME_SEED][1] == old[1]

@@ -49,7 +49,8 @@ class TetrisEnv(EnvBase):
     :param engine: ``auto`` (numba on CPU, torch on GPU), ``numba`` or ``torch``.
     :param max_pieces: truncate a game after this many pieces (0 = never).
 
-    Reset accepts an optional ``game_seed`` [B] entry to fix the games' seeds;
+    Reset accepts an optional ``reset_game_seed`` [B] entry to play given games (its own key, so
+    that the ``game_seed`` observation a partial reset carries along never replays a game);
     otherwise seeds come from the env's generator (see :meth:`set_seed`).
 
     Example:
@@ -143,8 +144,8 @@ class TetrisEnv(EnvBase):
         else:
             mask = torch.ones(b, dtype=torch.bool, device=self.device)
         fresh = torch.randint(0, 2**62, (b,), generator=self._rng, dtype=torch.int64).to(self.device)
-        if tensordict is not None and keys.GAME_SEED in tensordict:
-            fresh = tensordict.get(keys.GAME_SEED).reshape(b).to(torch.int64)
+        if tensordict is not None and keys.RESET_GAME_SEED in tensordict:
+            fresh = tensordict.get(keys.RESET_GAME_SEED).reshape(b).to(torch.int64).to(self.device)
         self._game_seeds = torch.where(mask, fresh, self._game_seeds)
         self._lines = torch.where(mask, 0, self._lines)
         self._pieces = torch.where(mask, 0, self._pieces)
