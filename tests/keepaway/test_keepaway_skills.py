@@ -137,3 +137,39 @@ def test_moving_ball_is_intercepted_on_its_path() -> None:
     assert point[0, 0, 1].item() == pytest.approx(0.0)
     assert 2.0 < point[0, 0, 0].item() < 9.0
     assert 1 <= cycles[0, 0].item() <= 30
+
+
+def _played_state(batch: int, preset: str) -> tuple:
+    from hfrl_torch.envs.keepaway import KeepawayConfig, KeepawaySimulator, hand_coded_actions
+
+    sim = KeepawaySimulator(batch, KeepawayConfig(preset=preset), seed=3)
+    for _ in range(25):
+        obs, _ = sim.observe(sim.decision().holder)
+        sim.step(hand_coded_actions(obs, 3, 2), auto_reset=True)
+    return sim.state, sim.physics, sim.grid
+
+
+@pytest.mark.parametrize("preset", ["2005", "rcss19"])
+def test_blocked_look_ahead_matches_one_block(preset: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The CPU block size of GoToBall's look-ahead and GetOpen's grid changes no bit."""
+    import hfrl_torch.envs.keepaway.skills as skills
+
+    state, physics, grid = _played_state(700, preset)
+    args = (
+        state.pos[:, 1:],
+        state.vel[:, 1:],
+        state.body[:, 1:],
+        state.ball_pos,
+        state.ball_vel,
+        30,
+        physics,
+    )
+    pass_from = state.ball_pos + state.ball_vel
+    monkeypatch.setattr(skills, "INTERCEPT_BLOCK", 10_000)
+    cycles, points = intercept_estimate(*args)
+    target = get_open_target(state.keeper_pos, state.taker_pos, pass_from, grid)
+    monkeypatch.setattr(skills, "INTERCEPT_BLOCK", 64)
+    cycles_b, points_b = intercept_estimate(*args)
+    assert torch.equal(cycles, cycles_b) and torch.equal(points, points_b)
+    assert torch.equal(target, get_open_target(state.keeper_pos, state.taker_pos, pass_from, grid))
+    assert (cycles >= 0).all() and bool((cycles <= 30).any())

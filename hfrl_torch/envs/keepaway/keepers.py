@@ -74,9 +74,18 @@ def keeper_commands(
     ball_b = ball_pos.unsqueeze(-2).expand_as(keeper_pos)
     open_target = get_open_target(keeper_pos, taker_pos, pass_from, grid)
     cmd = get_open(keeper_pos, keeper_vel, keeper_body, open_target, ball_b, physics)
-    go = intercept_move(keeper_pos, keeper_vel, keeper_body, intercept_point, ball_b, physics)
-    is_fastest = torch.arange(keepers, device=keeper_pos.device).unsqueeze(0) == fastest.unsqueeze(-1)
-    cmd = choose(is_fastest, go, cmd)
+    # only the fastest keeper runs GoToBall: evaluate it for that keeper alone
+    f = fastest.unsqueeze(-1)
+    go = intercept_move(
+        gather_points(keeper_pos, f).squeeze(1),
+        gather_points(keeper_vel, f).squeeze(1),
+        keeper_body.gather(1, f).squeeze(1),
+        gather_points(intercept_point, f).squeeze(1),
+        ball_pos,
+        physics,
+    )
+    is_fastest = torch.arange(keepers, device=keeper_pos.device).unsqueeze(0) == f
+    cmd = choose(is_fastest, go.unsqueeze(1).expand(batch, keepers, 3), cmd)
 
     h = holder.unsqueeze(-1)
     pos = gather_points(keeper_pos, h).squeeze(1)

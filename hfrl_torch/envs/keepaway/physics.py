@@ -184,11 +184,15 @@ def resolve_collisions(
     xs = list(pos[..., 0].unbind(-1))
     ys = list(pos[..., 1].unbind(-1))
     hit = [torch.zeros(pos.shape[:-2], dtype=torch.bool, device=pos.device) for _ in range(num)]
+    first, second = torch.triu_indices(num, num, offset=1, device=pos.device)
+    contacts = radius[first] + radius[second]
     for _ in range(max_passes):
         x_all, y_all = torch.stack(xs, -1), torch.stack(ys, -1)
-        first, second = torch.triu_indices(num, num, offset=1, device=pos.device)
-        gap = torch.hypot(x_all[:, second] - x_all[:, first], y_all[:, second] - y_all[:, first])
-        if not bool((gap < radius[first] + radius[second]).any()):
+        gap = torch.hypot(
+            x_all.index_select(1, second) - x_all.index_select(1, first),
+            y_all.index_select(1, second) - y_all.index_select(1, first),
+        )
+        if not bool((gap < contacts).any()):
             break
         for k, (i, j) in enumerate(pairs):
             contact = radii[i] + radii[j]

@@ -7,6 +7,7 @@ A command is a tensor [..., 3] = (kind, power, angle): kind 0 none, 1 turn (angl
 
 from __future__ import annotations
 
+import functools
 import math
 
 import torch
@@ -151,6 +152,7 @@ def ball_rest_point(ball_pos: Tensor, ball_vel: Tensor, decay: float) -> Tensor:
     return ball_pos + ball_vel / (1.0 - decay)
 
 
+@functools.lru_cache(maxsize=16)
 def _reach_table(horizon: int, physics: PhysicsParams, device: torch.device, dtype: torch.dtype) -> Tensor:
     """Distance [4, H + 1] a resting player covers by cycle i after t = 0..3 turns (dashing
     at full power the remaining i - t cycles); -1 where no dash fits."""
@@ -164,6 +166,25 @@ def _reach_table(horizon: int, physics: PhysicsParams, device: torch.device, dty
             dashes = cycle - turns
             table[turns, cycle] = dashes * cruise + (first - cruise) * (1.0 - decay**dashes) / (1.0 - decay)
     return table.to(device=device, dtype=dtype)
+
+
+_WORKSPACE: dict[tuple, Tensor] = {}
+
+
+def _scratch(slot: str, shape: tuple[int, ...], like: Tensor, dtype: torch.dtype | None = None) -> Tensor:
+    """A reusable scratch tensor (CPU allocation and first touch of large temporaries cost more
+    than the arithmetic); only for values that do not leave the function using it."""
+    key = (slot, shape, like.device, dtype or like.dtype)
+    buf = _WORKSPACE.get(key)
+    if buf is None:
+        if len(_WORKSPACE) > 64:
+            _WORKSPACE.clear()
+        buf = _WORKSPACE[key] = torch.empty(shape, device=like.device, dtype=dtype or like.dtype)
+    return buf
+
+
+# Fields per block of the look-ahead on CPU: [H + 1, block, P] temporaries stay in the cache.
+INTERCEPT_BLOCK = 1024
 
 
 def intercept_estimate(
@@ -182,7 +203,8 @@ def intercept_estimate(
     dashes covering the distance less the kickable distance; the first i where that fits is the
     interception. If no cycle of the horizon fits, the player runs to the ball's rest point.
     The ball moves on a straight line, so everything reduces to scalars per (cycle, player),
-    laid out [H + 1, B, P] so that the reductions over cycles are elementwise.
+    laid out [H + 1, B, P] so that the reductions over cycles are elementwise; on CPU the
+    fields are processed in blocks so that these temporaries stay in the cache.
 
     :param pos: player positions [B, P, 2]; ``vel`` alike, ``body`` [B, P].
     :param ball_pos: ball position [B, 2]; ``ball_vel`` alike.
@@ -203,31 +225,62 @@ def intercept_estimate(
     v_sq = vx * vx + vy * vy
     dx = ball_pos[:, None, 0] - pos[..., 0]
     dy = ball_pos[:, None, 1] - pos[..., 1]
-    # in-place chains keep the [H+1, B, P] temporaries few (allocation dominates on CPU)
-    need = travel * (2.0 * (dx * vx + dy * vy))
-    need.add_(dx * dx + dy * dy).addcmul_(travel_sq, v_sq).clamp_min_(0.0).sqrt_().sub_(kickable)
     ex, ey = dx - vel[..., 0], dy - vel[..., 1]
-    cos_err = travel * (2.0 * (ex * vx + ey * vy))
-    cos_err.add_(ex * ex + ey * ey + 1e-12).addcmul_(travel_sq, v_sq).clamp_min_(1e-12).rsqrt_()
-    cos_err.mul_(travel * (vx * hx + vy * hy) + (ex * hx + ey * hy))
+    # per (field, player) coefficients of the quadratics in travel (same arithmetic as a
+    # direct [H+1, B, P] evaluation)
+    need_lin = 2.0 * (dx * vx + dy * vy)
+    need_const = dx * dx + dy * dy
+    err_lin = 2.0 * (ex * vx + ey * vy)
+    err_const = ex * ex + ey * ey + 1e-12
+    head_lin = vx * hx + vy * hy
+    head_const = ex * hx + ey * hy
     speed = torch.hypot(vel[..., 0], vel[..., 1])
     table = _reach_table(horizon, physics, pos.device, pos.dtype)[:, :, None, None]  # [4, H+1, 1, 1]
     forward = (vel[..., 0] * hx + vel[..., 1] * hy).clamp_min(0.0)
     first = (forward + accel).clamp(max=physics.player_speed_max)
+    first_gap = first - cruise
     series = ((1.0 - torch.pow(torch.full_like(cycles_1d, decay), cycles_1d)) / (1.0 - decay))[:, None, None]
-    reach_now = series * (first - cruise)
-    reach_now.add_((cycles_1d * cruise)[:, None, None])
+    cruise_part = (cycles_1d * cruise)[:, None, None]
     # t turns fit when the heading error is within the first t turns' reach (+7 degrees); the
-    # turn counts are nested and fewer turns leave more dashing, so the union is exact
-    can = need <= table[3]
+    # turn counts are nested and fewer turns leave more dashing, so the reachable distance is
+    # that of the fewest turns whose limit covers the heading error
+    cos_limits = []
     capacity = torch.zeros_like(speed)
     for t in range(3):
-        limit = (capacity + WHEN_TO_TURN).clamp(max=math.pi)
-        ready = cos_err >= torch.cos(limit)
-        can |= ready & (need <= (reach_now if t == 0 else table[t]))
+        cos_limits.append(torch.cos((capacity + WHEN_TO_TURN).clamp(max=math.pi)))
         capacity = capacity + (math.pi / (1.0 + physics.inertia_moment * speed * decay**t)).clamp(max=math.pi)
-    weights = torch.arange(horizon + 1, 0, -1, device=pos.device, dtype=torch.uint8)[:, None, None]
-    score = (can.to(torch.uint8) * weights).amax(0)  # the first reachable cycle wins
+    weights = _weights(horizon, pos.device)
+    batch, players = pos.shape[:2]
+    block = batch if pos.device.type != "cpu" else INTERCEPT_BLOCK
+    score = torch.empty(batch, players, dtype=torch.uint8, device=pos.device)
+    for lo in range(0, batch, block):
+        hi = min(lo + block, batch)
+        shape = (horizon + 1, hi - lo, players)
+        need = _scratch("need", shape, pos)
+        err = _scratch("err", shape, pos)
+        tmp = _scratch("tmp", shape, pos)
+        reach = _scratch("reach", shape, pos)
+        ready = _scratch("ready", shape, pos, torch.bool)
+        can = _scratch("can", shape, pos, torch.uint8)
+        vsq = v_sq[lo:hi]
+        torch.mul(travel, need_lin[lo:hi], out=need)
+        need.add_(need_const[lo:hi]).addcmul_(travel_sq, vsq).clamp_min_(0.0).sqrt_().sub_(kickable)
+        torch.mul(travel, err_lin[lo:hi], out=err)
+        err.add_(err_const[lo:hi]).addcmul_(travel_sq, vsq).clamp_min_(1e-12).rsqrt_()
+        torch.mul(travel, head_lin[lo:hi], out=tmp)
+        err.mul_(tmp.add_(head_const[lo:hi]))
+        torch.mul(series, first_gap[lo:hi], out=reach)
+        reach.add_(cruise_part)
+        # reachable distance: table[3] by default, fewer turns where the heading error allows
+        torch.ge(err, cos_limits[2][lo:hi], out=ready)
+        torch.where(ready, table[2], table[3], out=tmp)
+        torch.ge(err, cos_limits[1][lo:hi], out=ready)
+        torch.where(ready, table[1], tmp, out=tmp)
+        torch.ge(err, cos_limits[0][lo:hi], out=ready)
+        torch.where(ready, reach, tmp, out=tmp)
+        torch.le(need, tmp, out=ready)
+        torch.mul(ready, weights, out=can)
+        torch.amax(can, 0, out=score[lo:hi])  # the first reachable cycle wins
     found = score > 0
     first_cycle = (horizon + 1 - score.long()).clamp(max=horizon)
     along = travel_1d[first_cycle]
@@ -236,6 +289,12 @@ def intercept_estimate(
     fallback_cycles = horizon + 1 + torch.ceil(norm(rest - pos) / cruise).long()
     cycles = torch.where(found, first_cycle, fallback_cycles)
     return cycles, torch.where(found.unsqueeze(-1), point, rest)
+
+
+@functools.lru_cache(maxsize=16)
+def _weights(horizon: int, device: torch.device) -> Tensor:
+    """H + 1 - i for cycle i [H + 1, 1, 1]: the largest weight of a reachable cycle marks the first."""
+    return torch.arange(horizon + 1, 0, -1, device=device, dtype=torch.uint8)[:, None, None]
 
 
 # ------------------------------------------------------------------------------- kicking
@@ -408,24 +467,39 @@ def get_open_target(keeper_pos: Tensor, taker_pos: Tensor, pass_from: Tensor, gr
     """GetOpen point [B, n, 2] of every keeper: the least congested grid point whose pass cone
     from ``pass_from`` holds no taker (the region centre if none).
 
-    Congestion of a point for keeper k: sum over all other players of 1 / distance.
+    Congestion of a point for keeper k: sum over all other players of 1 / distance. On CPU the
+    fields are processed in blocks so that the [25, B, P] temporaries stay in the cache.
     """
-    keepers = keeper_pos.shape[-2]
+    batch, keepers = keeper_pos.shape[:2]
+    candidates = grid.shape[0]
+    block = batch if keeper_pos.device.type != "cpu" else INTERCEPT_BLOCK
     players = torch.cat((keeper_pos, taker_pos), dim=-2)  # [B, P, 2]
     gx, gy = grid[:, 0, None, None], grid[:, 1, None, None]  # [25, 1, 1]
     px, py = players[..., 0], players[..., 1]  # [B, P]
-    inv = torch.rsqrt((gx - px) ** 2 + (gy - py) ** 2 + 1e-12)  # [25, B, P]
-    congestion = inv.sum(-1, keepdim=True) - inv[..., :keepers]  # [25, B, n]
     sx = gx[..., 0] - pass_from[:, 0]  # [25, B]
     sy = gy[..., 0] - pass_from[:, 1]
     rx = taker_pos[..., 0] - pass_from[:, 0, None]  # [B, m]
     ry = taker_pos[..., 1] - pass_from[:, 1, None]
     blocked = _cone_test(sx.unsqueeze(-1), sy.unsqueeze(-1), rx, ry, 0.3).any(-1)  # [25, B]
-    congestion = congestion + blocked.unsqueeze(-1).to(congestion.dtype) * 1e9
-    best = congestion.amin(0)
-    weights = torch.arange(grid.shape[0], 0, -1, device=grid.device, dtype=congestion.dtype)[:, None, None]
-    index = grid.shape[0] - ((congestion == best).to(congestion.dtype) * weights).amax(0).long()  # [B, n]
-    point = grid[index]
+    penalty = blocked.unsqueeze(-1).to(keeper_pos.dtype) * 1e9
+    weights = torch.arange(candidates, 0, -1, device=grid.device, dtype=keeper_pos.dtype)[:, None, None]
+    index = torch.empty(batch, keepers, device=grid.device, dtype=keeper_pos.dtype)
+    for lo in range(0, batch, block):
+        hi = min(lo + block, batch)
+        shape = (candidates, hi - lo, players.shape[1])
+        inv = _scratch("inv", shape, keeper_pos)
+        tmp = _scratch("inv_tmp", shape, keeper_pos)
+        torch.sub(gx, px[lo:hi], out=inv)
+        inv.mul_(inv)
+        torch.sub(gy, py[lo:hi], out=tmp)
+        inv.add_(tmp.mul_(tmp)).add_(1e-12).rsqrt_()
+        cong = _scratch("cong", (candidates, hi - lo, keepers), keeper_pos)
+        torch.sub(inv.sum(-1, keepdim=True), inv[..., :keepers], out=cong)
+        cong.add_(penalty[:, lo:hi])
+        best = cong.amin(0)
+        torch.mul(cong == best, weights, out=cong)
+        torch.amax(cong, 0, out=index[lo:hi])
+    point = grid[candidates - index.long()]  # ties go to the first grid point
     none_valid = blocked.all(0)
     return torch.where(none_valid[:, None, None], torch.zeros_like(point), point)
 
