@@ -7,7 +7,8 @@ import sys
 import hydra
 from omegaconf import DictConfig
 
-from hfrl_torch.app import check_overrides, guarded
+from hfrl_torch.app import check_overrides, guarded, resume_log_dir
+from hfrl_torch.experiment.factories import validate_train_config
 from hfrl_torch.experiment.train import train
 
 
@@ -18,5 +19,6 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
-    check_overrides(sys.argv[1:], "train")
+    check_overrides(sys.argv[1:], "train", validate_train_config)
+    sys.argv += resume_log_dir(sys.argv[1:])
     main()

@@ -30,8 +30,22 @@ def check_group_choices(argv: list[str], conf_dir: Path = CONF_DIR) -> None:
                 fail(f"unknown {key} {choice!r}; allowed: {', '.join(allowed)}")
 
 
-def check_overrides(argv: list[str], config_name: str, conf_dir: Path = CONF_DIR) -> None:
-    """Compose the config once up front so that a bad override fails with one line, not Hydra's page.
+def resume_log_dir(argv: list[str]) -> list[str]:
+    """Extra overrides that keep a resume invocation's Hydra files inside the resumed run."""
+    resume = [a.partition("=")[2] for a in argv if a.startswith("resume=")]
+    if not resume or not resume[-1] or any(a.startswith("hydra.run.dir=") for a in argv):
+        return []
+    return [f"hydra.run.dir={resume[-1]}/resume-logs/${{now:%Y-%m-%d_%H-%M-%S}}"]
+
+
+def check_overrides(
+    argv: list[str],
+    config_name: str,
+    validate: Callable[[object], None] | None = None,
+    conf_dir: Path = CONF_DIR,
+) -> None:
+    """Compose the config once up front so that a bad override fails with one line (not Hydra's
+    page) and before Hydra creates a run directory; ``validate`` checks the values.
 
     Sweeps (``-m``) are left to Hydra: their values are checked by each job.
     """
@@ -43,9 +57,14 @@ def check_overrides(argv: list[str], config_name: str, conf_dir: Path = CONF_DIR
 
     try:
         with initialize_config_dir(str(conf_dir), version_base=None):
-            compose(config_name, overrides=overrides)
+            cfg = compose(config_name, overrides=overrides)
     except Exception as exc:  # Hydra raises several types; all mean the command line is wrong
         fail(" ".join(str(exc).strip().splitlines()[:2]) or type(exc).__name__)
+    if validate is not None and not cfg.get("resume"):
+        try:
+            validate(cfg)
+        except (UserError, ValueError) as exc:
+            fail(str(exc).splitlines()[0])
 
 
 def fail(message: str) -> None:

@@ -14,7 +14,8 @@ from hfrl_torch.envs.tetris.rules import TetrisRules
 def test_update_keeps_the_elite_and_adds_noise():
     # score = first weight: the elite are the candidates with the largest first weight
     def rollout(weights, seeds):
-        return weights[:, 0].round().long(), torch.ones(len(seeds), dtype=torch.long)
+        n = len(seeds)
+        return weights[:, 0].round().long(), torch.ones(n, dtype=torch.long), torch.zeros(n, dtype=torch.bool)
 
     cfg = CEMConfig(
         population=10, elite_fraction=0.2, initial_variance=4.0, noise="constant", noise_value=0.5
@@ -39,8 +40,7 @@ def test_noise_schedules():
 
 def _rollout(rules):
     def rollout(weights, seeds):
-        lines, pieces, _ = play(rules, BT, weights, seeds)
-        return lines, pieces
+        return play(rules, BT, weights, seeds)
 
     return rollout
 

@@ -131,3 +131,10 @@ def test_tamer_with_a_simulated_oracle_then_evaluate_then_replay_its_log(tmp_pat
     replayed = load_feedback_log(second / "feedback.jsonl")
     assert replayed and all(e.source == "replay" for e in replayed)
     assert len(replayed) <= len(events)
+
+
+def test_resume_refuses_changes_that_redefine_the_run(trained, tmp_path):
+    out = run("train.py", f"resume={trained}", "domain.features=dt", "agent.iterations=4")
+    assert out.returncode == 2
+    assert "domain.features=dt cannot change when resuming" in out.stderr
+    assert "allowed: agent.iterations, threads, device, logger.backend" in out.stderr

@@ -32,16 +32,24 @@ def test_defaults_are_valid():
         ("domain.bag=maybe", "domain.bag='maybe' is invalid: must be true or false"),
         ("agent.iterations=-1", "agent.iterations=-1 is invalid: must be an integer >= 1"),
         ("agent.population=1", "agent.population=1 is invalid: must be an integer >= 2"),
-        ("agent.elite_fraction=1.5", "agent.elite_fraction=1.5 is invalid: must be a number in 0.001..1.0"),
-        ("agent.initial_variance=-2.0", "agent.initial_variance=-2.0 is invalid: must be a number >= 0.0"),
+        (
+            "agent.elite_fraction=1.5",
+            "agent.elite_fraction=1.5 is invalid: must be a finite number in 0.001..1.0",
+        ),
+        (
+            "agent.initial_variance=-2.0",
+            "agent.initial_variance=-2.0 is invalid: must be a finite number >= 0.0",
+        ),
         ("agent.noise=wild", "agent.noise='wild' is invalid; allowed: constant, decreasing, none"),
-        ("agent.noise_value=-4", "agent.noise_value=-4 is invalid: must be a number >= 0.0"),
+        ("agent.noise_value=-4", "agent.noise_value=-4 is invalid: must be a finite number >= 0.0"),
         ("agent.games_per_candidate=0", "agent.games_per_candidate=0 is invalid: must be an integer >= 1"),
         ("seed=-3", "seed=-3 is invalid: must be an integer in 0.."),
         ("device=tpu", "device='tpu' is invalid; allowed: cpu, cuda, cuda:N"),
         ("threads=0", "threads=0 is invalid: must be an integer in 1..256"),
         ("logger.backend=wandb", "logger.backend='wandb' is invalid; allowed: tensorboard, none"),
         ("trainer=oracle", "trainer='oracle' with agent=cem needs a fusion scheme"),
+        ("agent.initial_mean=nan", "agent.initial_mean=nan is invalid: must be a finite number"),
+        ("agent.initial_variance=inf", "agent.initial_variance=inf is invalid: must be a finite number"),
     ],
 )
 def test_bad_values(override, message):
@@ -119,12 +127,12 @@ def test_keepaway_preset_given_as_a_number_on_the_command_line_is_accepted():
             ["trainer=none"],
             "agent=tamer learns only from feedback; choose a trainer: oracle, value_proxy, replay",
         ),
-        (["trainer=oracle", "agent.alpha=-1"], "agent.alpha=-1 is invalid: must be a number >= 1e-12"),
+        (["trainer=oracle", "agent.alpha=-1"], "agent.alpha=-1 is invalid: must be a finite number >= 1e-12"),
         (["trainer=oracle", "agent.credit=soon"], "agent.credit='soon' is invalid; allowed: previous_step"),
         (["trainer=oracle", "agent.features=dt"], "agent.features='dt' is invalid; allowed: knox, bt"),
         (
             ["trainer=oracle", "trainer.frequency=1.5"],
-            "trainer.frequency=1.5 is invalid: must be a number in 0.0..1.0",
+            "trainer.frequency=1.5 is invalid: must be a finite number in 0.0..1.0",
         ),
         (["trainer=oracle", "trainer.consistency=-0.1"], "trainer.consistency=-0.1 is invalid"),
         (

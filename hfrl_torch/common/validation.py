@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable
 from typing import Any
 
@@ -30,10 +31,12 @@ def require_int(cfg: DictConfig, path: str, low: int | None = None, high: int | 
 def require_float(cfg: DictConfig, path: str, low: float | None = None, high: float | None = None) -> float:
     """The number at ``path``, within [low, high]."""
     value = _get(cfg, path)
-    ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
     ok = ok and (low is None or value >= low) and (high is None or value <= high)
     if not ok:
-        raise ConfigError(f"{path}={value!r} is invalid: must be a number {_range(low, high)}")
+        raise ConfigError(
+            f"{path}={value!r} is invalid: must be a finite number {_range(low, high)}".rstrip()
+        )
     return float(value)
 
 

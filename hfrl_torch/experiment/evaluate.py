@@ -30,7 +30,7 @@ def _tetris_policy(cfg: DictConfig) -> tuple[str, str, torch.Tensor, bool, DictC
         w = torch.zeros(feature_size(feature_id("bt"), cfg.domain.width), dtype=torch.float64)
         return name, "bt", w, True, cfg
     path = Path(name)
-    if not path.exists():
+    if not name.strip() or not path.exists():
         raise ConfigError(
             f"policy={name!r} is neither a checkpoint nor a run directory nor one of: dellacherie, random"
         )
@@ -59,6 +59,7 @@ def _task_overrides() -> list[str]:
 def evaluate_tetris(cfg: DictConfig, progress: bool = True) -> dict[str, object]:
     """Play ``games`` games of ``policy`` and return the summary that evaluate.py prints as JSON."""
     games = require_int(cfg, "games", 1)
+    require_int(cfg, "seed", 0, 2**62)
     threads = set_threads(cfg)
     label, features, weights, random_policy, cfg = _tetris_policy(cfg)
     rules = make_rules(cfg)
@@ -73,7 +74,7 @@ def evaluate_tetris(cfg: DictConfig, progress: bool = True) -> dict[str, object]
 
     from hfrl_torch.envs.tetris import engine_numba
 
-    lines, pieces = [], []
+    lines, pieces, capped_list = [], [], []
     chunk = max(threads, -(-games // 20))  # about 20 progress updates
     warm = make_rollout(OmegaConf.merge(cfg, {"domain": {"max_pieces": 1}}), features=features)
     warm(weights.expand(1, -1), seeds[:1])  # load the compiled kernels before timing
@@ -82,7 +83,7 @@ def evaluate_tetris(cfg: DictConfig, progress: bool = True) -> dict[str, object]
         for i in range(0, games, chunk):
             s = seeds[i : i + chunk]
             if random_policy:
-                ln, pc, _ = engine_numba.play(
+                ln, pc, cp = engine_numba.play(
                     rules,
                     feature_id(features),
                     weights,
@@ -91,15 +92,16 @@ def evaluate_tetris(cfg: DictConfig, progress: bool = True) -> dict[str, object]
                     max_pieces=cfg.domain.max_pieces,
                 )
             else:
-                ln, pc = rollout(weights.expand(len(s), -1), s)
+                ln, pc, cp = rollout(weights.expand(len(s), -1), s)
             lines.append(ln)
             pieces.append(pc)
+            capped_list.append(cp)
             bar.update(len(s))
             bar.set_postfix(mean_lines=f"{torch.cat(lines).double().mean():.1f}")
     elapsed = time.perf_counter() - t0
     lines_t, pieces_t = torch.cat(lines), torch.cat(pieces)
     cap = int(cfg.domain.max_pieces)
-    capped = int((pieces_t >= cap).sum()) if cap > 0 else 0
+    capped = int(torch.cat(capped_list).sum())
     s = summarize(lines_t, floor=0.0)
     return {
         "domain": "tetris",
@@ -190,6 +192,7 @@ def evaluate_keepaway(cfg: DictConfig, progress: bool = True) -> dict[str, objec
             "(learned keepaway checkpoints arrive with the keepaway learners)"
         )
     episodes = require_int(cfg, "episodes", 1)
+    require_int(cfg, "seed", 0, 2**62)
     batch = require_int(cfg, "domain.batch", 1, 65536)
     set_threads(cfg)
     config = keepaway_config(cfg)

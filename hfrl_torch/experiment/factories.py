@@ -104,9 +104,11 @@ def make_rollout(cfg: DictConfig, features: str | None = None) -> Rollout:
         def play(*args, **kwargs):
             return engine_torch.play(*args, device=device, **kwargs)
 
-    def rollout(weights: torch.Tensor, seeds: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        lines, pieces, _ = play(rules, fid, weights, seeds, max_pieces=max_pieces)
-        return lines.cpu(), pieces.cpu()
+    def rollout(
+        weights: torch.Tensor, seeds: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        lines, pieces, capped = play(rules, fid, weights, seeds, max_pieces=max_pieces)
+        return lines.cpu(), pieces.cpu(), capped.cpu()
 
     return rollout
 

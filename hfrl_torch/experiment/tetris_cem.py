@@ -6,6 +6,7 @@ import json
 import time
 from pathlib import Path
 
+import torch
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
@@ -35,7 +36,9 @@ def train_cem(cfg: DictConfig, run_dir: Path, checkpoint: dict | None) -> dict[s
         history = list(checkpoint["history"])
 
     start = cem.iteration
-    logger = make_run_logger(cfg, str(run_dir / "tensorboard"), purge_step=start if start > 0 else None)
+    warm = make_rollout(OmegaConf.merge(cfg, {"domain": {"max_pieces": 1}}))
+    warm(cem.mean.expand(1, -1), torch.zeros(1, dtype=torch.int64))  # load the kernels before timing
+    logger = make_run_logger(cfg, str(run_dir / "tensorboard"), purge_step=start + 1 if start > 0 else None)
     if start == 0:
         logger.text("hyperparameters", markdown_table(flatten_config(cfg)))
         logger.text(
@@ -66,6 +69,7 @@ def train_cem(cfg: DictConfig, run_dir: Path, checkpoint: dict | None) -> dict[s
                     "eval/mean_policy_lines_median": ev["median"],
                     "eval/mean_policy_lines_ci95_low": ev["ci95_low"],
                     "eval/mean_policy_lines_ci95_high": ev["ci95_high"],
+                    "eval/capped_games": cem.last_eval_capped,
                     "time/placements_per_s": placements / max(elapsed, 1e-9),
                     "time/iteration_s": elapsed,
                 }
@@ -103,7 +107,7 @@ def train_cem(cfg: DictConfig, run_dir: Path, checkpoint: dict | None) -> dict[s
     finally:
         bar.close()
         final = history[-1] if history else {}
-        if history and cem.iteration >= cfg.agent.iterations:
+        if history and cem.iteration >= cfg.agent.iterations and cem.iteration > start:
             logger.hparams(
                 flatten_config(cfg),
                 {"hparam/eval_lines_mean": final["eval/mean_policy_lines_mean"]},

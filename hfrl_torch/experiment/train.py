@@ -23,23 +23,31 @@ TRAINER_LABELS = {
 }
 
 
-def resume_config(cfg: DictConfig, run_dir: Path, checkpoint: dict, overrides: list[str]) -> DictConfig:
-    """The saved config of ``run_dir`` with this command line's value overrides applied.
+RESUMABLE = ("agent.iterations", "threads", "device", "logger.backend")
 
-    Group choices cannot change on resume (a different domain or agent is a new run).
+
+def resume_config(cfg: DictConfig, run_dir: Path, checkpoint: dict, overrides: list[str]) -> DictConfig:
+    """The saved config of ``run_dir`` with the few overrides that do not redefine the run.
+
+    A resumed run must stay the run its config and checkpoint describe: only the budget
+    (``agent.iterations``), threads, device and logging may change.
     """
     saved = OmegaConf.create(checkpoint["config"])
     values = []
     for item in overrides:
         key, _, value = item.lstrip("+~").partition("=")
-        if key == "resume":
+        if key == "resume" or key.startswith("hydra"):
             continue
-        if key in GROUPS:
-            if OmegaConf.select(saved, f"{key}.name", default=None) not in (value, None) and key != "logger":
-                raise ConfigError(
-                    f"{key}={value!r} differs from the resumed run's {key}; start a new run instead"
-                )
+        if key == "logger":
+            values.append(f"logger.backend={value}")
             continue
+        if key in GROUPS and OmegaConf.select(saved, f"{key}.name", default=None) == value:
+            continue
+        if key not in RESUMABLE:
+            raise ConfigError(
+                f"{key}={value} cannot change when resuming (the saved config defines the run); "
+                f"allowed: {', '.join(RESUMABLE)}"
+            )
         values.append(f"{key}={value}")
     OmegaConf.set_struct(saved, True)
     try:
@@ -96,9 +104,12 @@ def train(cfg: DictConfig) -> Path:
         final = {}
     ckpt = run_dir / "checkpoints" / LAST
     lines = [""]
-    if interrupted:
+    if interrupted and agent == "cem":
         lines.append("Interrupted. Every finished iteration is saved; continue with:")
         lines.append(f"  python train.py resume={run_dir}")
+    elif interrupted:
+        lines.append(f"Interrupted. agent={agent} saves its checkpoint at the end, so there is none;")
+        lines.append("every feedback event given so far is in feedback.jsonl.")
     elif final and agent == "cem":
         low, high = final["eval/mean_policy_lines_ci95_low"], final["eval/mean_policy_lines_ci95_high"]
         mean = final["eval/mean_policy_lines_mean"]
@@ -113,10 +124,13 @@ def train(cfg: DictConfig) -> Path:
         )
         lines.append(f"Feedback log:     {run_dir / 'feedback.jsonl'}")
     python, tensorboard = _commands()
-    lines += [f"Logs and config:  {run_dir}", f"Checkpoint:       {ckpt}"]
+    lines.append(f"Logs and config:  {run_dir}")
+    if ckpt.exists():
+        lines.append(f"Checkpoint:       {ckpt}")
     if cfg.logger.backend == "tensorboard":
         lines.append(f"TensorBoard:      {tensorboard} --logdir {run_dir / 'tensorboard'}")
-    lines.append(f"Evaluate:         {python} evaluate.py policy={run_dir}")
+    if ckpt.exists():
+        lines.append(f"Evaluate:         {python} evaluate.py policy={run_dir}")
     print("\n".join(lines), file=sys.stderr)
     if interrupted:
         sys.exit(130)

@@ -162,3 +162,24 @@ def test_partial_reset_with_the_current_data_starts_new_games():
     old = td[keys.GAME_SEED].clone()
     after = env.reset(td.clone().set(keys.RESET, torch.tensor([[True], [False]])))
     assert after[keys.GAME_SEED][0] != old[0] and after[keys.GAME_SEED][1] == old[1]
+
+
+def test_each_observation_owns_its_action_mask():
+    # the engine reuses its buffers; a stored observation must keep the mask of its own piece
+    env = TetrisEnv(batch=2, rules=TetrisRules(10, 10), seed=2)
+    td = env.reset()
+    first = td[keys.ACTION_MASK].clone()
+    stored = td[keys.ACTION_MASK]
+    for _ in range(4):
+        td[keys.ACTION] = _greedy_bt(td)
+        td = env.step(td)["next"]
+    assert torch.equal(stored, first)
+    counts = {0: 17, 1: 9, 2: 34, 3: 17, 4: 17, 5: 34, 6: 34}
+    assert td[keys.ACTION_MASK].sum(-1).tolist() == [counts[p] for p in td[keys.PIECE].tolist()]
+
+
+def test_weights_of_the_wrong_length_are_refused():
+    from hfrl_torch.envs.tetris.engine_numba import play
+
+    with pytest.raises(ValueError, match=r"allowed: \[21\] or \[2, 21\]"):
+        play(TetrisRules(10, 10), 0, torch.zeros(9), torch.arange(2))

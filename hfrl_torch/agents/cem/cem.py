@@ -19,8 +19,8 @@ import torch
 
 from hfrl_torch.common.stats import summarize
 
-# (weights [N, F], game seeds [N]) -> (lines [N], pieces [N])
-Rollout = Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
+# (weights [N, F], game seeds [N]) -> (lines [N], pieces [N], capped [N]: stopped by the piece limit)
+Rollout = Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
 
 NOISE_SCHEDULES = ("constant", "decreasing", "none")
 
@@ -91,7 +91,7 @@ class CrossEntropyMethod:
         game_seeds = torch.randint(0, 2**62, (c.games_per_candidate,), generator=game_gen, dtype=torch.int64)
         weights = candidates.repeat_interleave(c.games_per_candidate, dim=0)
         seeds = game_seeds.repeat(c.population)
-        lines, pieces = self.rollout(weights, seeds)
+        lines, pieces, capped = self.rollout(weights, seeds)
         scores = lines.to(torch.float64).view(c.population, c.games_per_candidate).mean(1)
 
         elite = torch.argsort(scores, descending=True, stable=True)[: c.n_elite]
@@ -108,6 +108,7 @@ class CrossEntropyMethod:
             "population/lines_best": pop["max"],
             "population/elite_lines_mean": float(scores[elite].mean()),
             "population/placements": float(pieces.sum()),
+            "population/capped_share": float(capped.double().mean()),
             "cem/noise": self.noise(t),
             "cem/std_mean": float(self.variance.sqrt().mean()),
         }
@@ -117,8 +118,9 @@ class CrossEntropyMethod:
         n = self.config.eval_games if games is None else games
         gen = torch.Generator().manual_seed(_derived_seed(self.seed, self.iteration, 2))
         seeds = torch.randint(0, 2**62, (n,), generator=gen, dtype=torch.int64)
-        lines, pieces = self.rollout(self.mean.expand(n, -1), seeds)
+        lines, pieces, capped = self.rollout(self.mean.expand(n, -1), seeds)
         self.last_eval_pieces = int(pieces.sum())
+        self.last_eval_capped = int(capped.sum())
         return lines
 
     def state_dict(self) -> dict[str, object]:
@@ -126,7 +128,13 @@ class CrossEntropyMethod:
         return {"mean": self.mean.clone(), "variance": self.variance.clone(), "iteration": self.iteration}
 
     def load_state_dict(self, state: dict[str, object]) -> None:
-        """Restore :meth:`state_dict`'s output."""
-        self.mean = torch.as_tensor(state["mean"], dtype=torch.float64).clone()
-        self.variance = torch.as_tensor(state["variance"], dtype=torch.float64).clone()
+        """Restore :meth:`state_dict`'s output; the weight vector must keep its length."""
+        mean = torch.as_tensor(state["mean"], dtype=torch.float64)
+        variance = torch.as_tensor(state["variance"], dtype=torch.float64)
+        if mean.shape != self.mean.shape or variance.shape != self.variance.shape:
+            raise ValueError(
+                f"saved CE state has {tuple(mean.shape)} weights; this run needs {tuple(self.mean.shape)}"
+            )
+        self.mean = mean.clone()
+        self.variance = variance.clone()
         self.iteration = int(state["iteration"])

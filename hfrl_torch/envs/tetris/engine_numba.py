@@ -616,6 +616,18 @@ class NumbaEngine:
         }
 
 
+def check_weights(weights: torch.Tensor, num_features: int, games: int) -> None:
+    """Raise ValueError unless ``weights`` is [F] or [games, F] with F = ``num_features``."""
+    ok = (weights.dim() == 1 and weights.shape[0] == num_features) or (
+        weights.dim() == 2 and tuple(weights.shape) == (games, num_features)
+    )
+    if not ok:
+        raise ValueError(
+            f"weights of shape {tuple(weights.shape)} do not fit this feature set; "
+            f"allowed: [{num_features}] or [{games}, {num_features}]"
+        )
+
+
 def play(
     rules: TetrisRules,
     feature_id: int,
@@ -633,6 +645,7 @@ def play(
     table = placement_table(rules.width)
     g = seeds.shape[0]
     nf = feature_size(feature_id, rules.width)
+    check_weights(weights, nf, g)
     w = weights.detach().to(torch.float64).cpu()
     w = (w.expand(g, nf) if w.dim() == 1 else w).contiguous().numpy()
     ps = policy_seeds if policy_seeds is not None else seeds

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import torch
 
-from hfrl_torch.envs.tetris.engine_numba import SPARE_ROWS, spawn_masks
+from hfrl_torch.envs.tetris.engine_numba import SPARE_ROWS, check_weights, spawn_masks
 from hfrl_torch.envs.tetris.features import BT, DELLACHERIE, DT, KNOX, feature_size
 from hfrl_torch.envs.tetris.pieces import PlacementTable, placement_table
 from hfrl_torch.envs.tetris.rules import TetrisRules
@@ -382,6 +382,7 @@ def play(
     dev = torch.device(device)
     g = seeds.shape[0]
     nf = feature_size(feature_id, rules.width)
+    check_weights(weights, nf, g)
     w_all = weights.detach().to(dev, torch.float64)
     w_all = w_all.expand(g, nf) if w_all.dim() == 1 else w_all
     ps_all = (policy_seeds if policy_seeds is not None else seeds).to(dev, torch.int64)

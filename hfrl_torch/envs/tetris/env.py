@@ -118,10 +118,10 @@ class TetrisEnv(EnvBase):
     def _observation(self) -> TensorDict:
         feats, mask, terminal, _ = self.engine.afterstates()
         dev = self.device
-        mask = mask.to(dev)
+        mask = mask.to(dev, copy=True)  # the engine reuses its buffers: every observation owns its mask
         # a finished board keeps one valid action so that masked sampling stays defined
         mask[:, 0] |= ~mask.any(-1)
-        self.action_spec.update_mask(mask)
+        self.action_spec.update_mask(mask.clone())
         out = {
             keys.AFTERSTATE_FEATURES: feats.to(dev, copy=True),
             keys.AFTERSTATE_TERMINAL: terminal.to(dev, copy=True),
