@@ -16,7 +16,7 @@ from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.common.stats import summarize
 from hfrl_torch.common.validation import require_bool, require_choice, require_float, require_int
 from hfrl_torch.envs.tetris.features import DELLACHERIE_WEIGHTS, feature_id, feature_size
-from hfrl_torch.experiment.factories import make_rollout, make_rules, set_threads
+from hfrl_torch.experiment.factories import make_rollout, make_rules, set_threads, warm_up
 
 NAMED_POLICIES = ("dellacherie", "random")
 
@@ -68,31 +68,18 @@ def evaluate_tetris(cfg: DictConfig, progress: bool = True) -> dict[str, object]
             f"policy {label!r} has {weights.numel()} weights for features {features!r}, "
             f"which need {feature_size(feature_id(features), rules.width)} on a board {rules.width} wide"
         )
-    rollout = make_rollout(cfg, features=features)
+    rollout = make_rollout(cfg, features=features, random_policy=random_policy)
     gen = torch.Generator().manual_seed(int(cfg.seed))
     seeds = torch.randint(0, 2**62, (games,), generator=gen, dtype=torch.int64)
 
-    from hfrl_torch.envs.tetris import engine_numba
-
     lines, pieces, capped_list = [], [], []
     chunk = max(threads, -(-games // 20))  # about 20 progress updates
-    warm = make_rollout(OmegaConf.merge(cfg, {"domain": {"max_pieces": 1}}), features=features)
-    warm(weights.expand(1, -1), seeds[:1])  # load the compiled kernels before timing
+    warm_up(cfg, features)
     t0 = time.perf_counter()
     with tqdm(total=games, desc=f"eval {Path(label).name}", unit="game", disable=not progress) as bar:
         for i in range(0, games, chunk):
             s = seeds[i : i + chunk]
-            if random_policy:
-                ln, pc, cp = engine_numba.play(
-                    rules,
-                    feature_id(features),
-                    weights,
-                    s,
-                    random_policy=True,
-                    max_pieces=cfg.domain.max_pieces,
-                )
-            else:
-                ln, pc, cp = rollout(weights.expand(len(s), -1), s)
+            ln, pc, cp = rollout(weights.expand(len(s), -1), s)
             lines.append(ln)
             pieces.append(pc)
             capped_list.append(cp)

@@ -18,7 +18,7 @@ from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.common.logger import BACKENDS, Logger, make_logger
 from hfrl_torch.common.validation import require_bool, require_choice, require_float, require_int
 from hfrl_torch.envs.tetris.env import ENGINES, TetrisEnv
-from hfrl_torch.envs.tetris.features import feature_id
+from hfrl_torch.envs.tetris.features import feature_id, feature_size
 from hfrl_torch.envs.tetris.rules import TetrisRules
 from hfrl_torch.feedback.credit import CreditModel, GammaDelay, PreviousStep, UniformDelay
 from hfrl_torch.feedback.log import FeedbackLog
@@ -83,8 +83,9 @@ def make_env(cfg: DictConfig, batch: int) -> TetrisEnv:
     )
 
 
-def make_rollout(cfg: DictConfig, features: str | None = None) -> Rollout:
-    """Whole-game rollouts of linear policies on the configured engine (numba on CPU)."""
+def make_rollout(cfg: DictConfig, features: str | None = None, random_policy: bool = False) -> Rollout:
+    """Whole-game rollouts of linear policies (or uniformly random placements) on the configured
+    engine (numba on CPU)."""
     check_domain(cfg)
     rules = make_rules(cfg)
     fid = feature_id(features or cfg.domain.features)
@@ -107,10 +108,20 @@ def make_rollout(cfg: DictConfig, features: str | None = None) -> Rollout:
     def rollout(
         weights: torch.Tensor, seeds: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        lines, pieces, capped = play(rules, fid, weights, seeds, max_pieces=max_pieces)
+        lines, pieces, capped = play(
+            rules, fid, weights, seeds, max_pieces=max_pieces, random_policy=random_policy
+        )
         return lines.cpu(), pieces.cpu(), capped.cpu()
 
     return rollout
+
+
+def warm_up(cfg: DictConfig, features: str | None = None) -> None:
+    """Load (or compile) the engine's kernels with a one-piece game, so that timings measure play."""
+    name = features or cfg.domain.features
+    n = feature_size(feature_id(name), cfg.domain.width)
+    one_piece = make_rollout(OmegaConf.merge(cfg, {"domain": {"max_pieces": 1}}), features=name)
+    one_piece(torch.zeros(1, n, dtype=torch.float64), torch.zeros(1, dtype=torch.int64))
 
 
 def make_cem_config(cfg: DictConfig) -> CEMConfig:

@@ -6,7 +6,6 @@ import json
 import time
 from pathlib import Path
 
-import torch
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
@@ -20,6 +19,7 @@ from hfrl_torch.experiment.factories import (
     make_rollout,
     make_rules,
     make_run_logger,
+    warm_up,
 )
 
 
@@ -36,8 +36,7 @@ def train_cem(cfg: DictConfig, run_dir: Path, checkpoint: dict | None) -> dict[s
         history = list(checkpoint["history"])
 
     start = cem.iteration
-    warm = make_rollout(OmegaConf.merge(cfg, {"domain": {"max_pieces": 1}}))
-    warm(cem.mean.expand(1, -1), torch.zeros(1, dtype=torch.int64))  # load the kernels before timing
+    warm_up(cfg)
     logger = make_run_logger(cfg, str(run_dir / "tensorboard"), purge_step=start + 1 if start > 0 else None)
     if start == 0:
         logger.text("hyperparameters", markdown_table(flatten_config(cfg)))

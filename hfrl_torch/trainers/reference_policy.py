@@ -48,9 +48,8 @@ def _evaluate(
     """Per board: every placement's full and board-only value, the best one, and which give its board."""
     nb = rows.shape[0]
     nrows = height + SPARE_ROWS
-    tmp_rows = np.empty(nrows, np.int64)
+    after_rows = np.empty((num_actions.max(), nrows), np.int64)  # every placement's afterstate
     tmp_h = np.empty(width, np.int64)
-    best_rows = np.empty(nrows, np.int64)
     feat = np.empty(6, np.float64)
     for b in range(nb):
         out_value[b, :] = 0.0
@@ -69,6 +68,7 @@ def _evaluate(
         best_v = -np.inf
         best_over = True
         for a in range(num_actions[p]):
+            tmp_rows = after_rows[a]
             lines, land, eroded_cells, over = _place(
                 rows[b],
                 heights[b],
@@ -107,26 +107,11 @@ def _evaluate(
                 best_v = v
                 best_over = over
                 out_best[b] = a
-                for r in range(nrows):
-                    best_rows[r] = tmp_rows[r]
+        best = after_rows[out_best[b]]
         for a in range(num_actions[p]):
-            _place(
-                rows[b],
-                heights[b],
-                tmp_rows,
-                tmp_h,
-                width,
-                height,
-                row_masks[p, a],
-                bottom[p, a],
-                top[p, a],
-                column[p, a],
-                piece_width[p, a],
-                piece_height[p, a],
-            )
             same = True
             for r in range(nrows):
-                if tmp_rows[r] != best_rows[r]:
+                if after_rows[a, r] != best[r]:
                     same = False
                     break
             out_same[b, a] = same

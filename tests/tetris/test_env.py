@@ -183,3 +183,30 @@ def test_weights_of_the_wrong_length_are_refused():
 
     with pytest.raises(ValueError, match=r"allowed: \[21\] or \[2, 21\]"):
         play(TetrisRules(10, 10), 0, torch.zeros(9), torch.arange(2))
+
+
+def test_linear_value_module_plays_the_engines_game():
+    # the torch module scoring the env's observation picks what the compiled whole-game kernel picks
+    from hfrl_torch.envs.tetris.engine_numba import play
+    from hfrl_torch.envs.tetris.features import DELLACHERIE, DELLACHERIE_WEIGHTS
+    from hfrl_torch.models import LinearValue
+
+    value = LinearValue(6)
+    with torch.no_grad():
+        value.linear.weight.copy_(torch.tensor([DELLACHERIE_WEIGHTS], dtype=torch.float64))
+    env = TetrisEnv(batch=1, rules=TetrisRules(10, 10), features="dellacherie")
+    td = env.reset(env.reset().set(keys.RESET_GAME_SEED, torch.tensor([77])))
+    for _ in range(150):
+        values = value(td[keys.AFTERSTATE_FEATURES])
+        td[keys.ACTION] = greedy_placement(values, td[keys.ACTION_MASK], td[keys.AFTERSTATE_TERMINAL])
+        td = env.step(td)["next"]
+        assert not td[keys.DONE].any()
+    lines, pieces, capped = play(
+        TetrisRules(10, 10),
+        DELLACHERIE,
+        torch.tensor(DELLACHERIE_WEIGHTS),
+        torch.tensor([77]),
+        max_pieces=150,
+    )
+    assert bool(capped[0]) and int(pieces[0]) == 150
+    assert int(td[keys.LINES][0, 0]) == int(lines[0]) > 0

@@ -496,6 +496,36 @@ def spawn_masks(table: PlacementTable) -> np.ndarray:
     return out
 
 
+@numba.njit(cache=True)
+def reset_batch(
+    mask: np.ndarray,
+    seeds: np.ndarray,
+    bag: bool,
+    rows: np.ndarray,
+    heights: np.ndarray,
+    index: np.ndarray,
+    alive: np.ndarray,
+    keys: np.ndarray,
+    pieces: np.ndarray,
+) -> None:
+    """Empty the boards where ``mask`` is set and start game b from ``seeds[b]``."""
+    for b in range(mask.shape[0]):
+        if mask[b]:
+            rows[b, :] = 0
+            heights[b, :] = 0
+            index[b] = 0
+            alive[b] = True
+            keys[b] = game_key(seeds[b])
+            pieces[b] = piece_at(keys[b], 0, bag)
+
+
+@numba.njit(cache=True)
+def pieces_at(keys: np.ndarray, index: np.ndarray, bag: bool, out: np.ndarray) -> None:
+    """``out[b]`` = piece ``index[b]`` of game ``keys[b]``."""
+    for b in range(keys.shape[0]):
+        out[b] = piece_at(keys[b], index[b], bag)
+
+
 class NumbaEngine:
     """A batch of ``batch`` Tetris boards stepped by the compiled kernels (CPU only).
 
@@ -506,6 +536,7 @@ class NumbaEngine:
         self.rules = rules
         self.batch = batch
         self.fid = feature_id
+        self.device = torch.device("cpu")
         self.table = placement_table(rules.width)
         self.spawn = spawn_masks(self.table)
         self.num_features = feature_size(feature_id, rules.width)
@@ -529,15 +560,17 @@ class NumbaEngine:
 
     def reset(self, mask: torch.Tensor, seeds: torch.Tensor) -> None:
         """Start new games on the boards where ``mask`` is set, game b from ``seeds[b]``."""
-        m = mask.numpy()
-        s = seeds.numpy()
-        self.rows[m] = 0
-        self.heights[m] = 0
-        self.index[m] = 0
-        self.alive[m] = True
-        for b in np.flatnonzero(m):
-            self.keys[b] = game_key(int(s[b]))
-            self.pieces[b] = piece_at(self.keys[b], 0, self.rules.bag)
+        reset_batch(
+            mask.numpy(),
+            seeds.numpy().astype(np.int64, copy=False),
+            self.rules.bag,
+            self.rows,
+            self.heights,
+            self.index,
+            self.alive,
+            self.keys,
+            self.pieces,
+        )
 
     def afterstates(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """(features [B,A,F] float32, valid mask [B,A], game-ending [B,A], lines cleared [B,A])."""
@@ -596,13 +629,9 @@ class NumbaEngine:
 
     def next_pieces(self) -> torch.Tensor:
         """The piece after the current one [B] (for the preview option)."""
-        return torch.tensor(
-            [
-                piece_at(int(k), int(i) + 1, self.rules.bag)
-                for k, i in zip(self.keys, self.index, strict=True)
-            ],
-            dtype=torch.int64,
-        )
+        out = np.empty(self.batch, np.int64)
+        pieces_at(self.keys, self.index + 1, self.rules.bag, out)
+        return torch.from_numpy(out)
 
     def state_tensors(self) -> dict[str, torch.Tensor]:
         """The whole engine state as tensors (for checkpoints and for comparing engines)."""

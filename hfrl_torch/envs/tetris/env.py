@@ -80,7 +80,6 @@ class TetrisEnv(EnvBase):
         self.num_actions = self.table.max_actions
         self.num_features = feature_size(feature_id(features), self.rules.width)
         self._lines = torch.zeros(batch, dtype=torch.int64, device=device)
-        self._pieces = torch.zeros(batch, dtype=torch.int64, device=device)
         self._game_seeds = torch.zeros(batch, dtype=torch.int64, device=device)
         self._rng = torch.Generator()
         self._make_specs()
@@ -130,12 +129,16 @@ class TetrisEnv(EnvBase):
             keys.BOARD: self.engine.boards().to(dev),
             keys.PIECE: torch.as_tensor(self.engine.pieces, device=dev).clone(),
             keys.LINES: self._lines.unsqueeze(-1).clone(),
-            keys.PIECES_PLACED: self._pieces.unsqueeze(-1).clone(),
+            keys.PIECES_PLACED: self._pieces_placed().unsqueeze(-1),
             keys.GAME_SEED: self._game_seeds.clone(),
         }
         if self.rules.preview:
             out[keys.NEXT_PIECE] = self.engine.next_pieces().to(dev)
         return TensorDict(out, batch_size=self.batch_size, device=dev)
+
+    def _pieces_placed(self) -> torch.Tensor:
+        """Pieces placed in each board's current game: the engine's index into its piece sequence."""
+        return torch.as_tensor(self.engine.index, device=self.device).clone()
 
     def _reset(self, tensordict: TensorDictBase | None, **kwargs) -> TensorDictBase:
         b = self.batch_size[0]
@@ -148,18 +151,13 @@ class TetrisEnv(EnvBase):
             fresh = tensordict.get(keys.RESET_GAME_SEED).reshape(b).to(torch.int64).to(self.device)
         self._game_seeds = torch.where(mask, fresh, self._game_seeds)
         self._lines = torch.where(mask, 0, self._lines)
-        self._pieces = torch.where(mask, 0, self._pieces)
-        self.engine.reset(mask.to(self._engine_device), self._game_seeds.to(self._engine_device))
+        self.engine.reset(mask.to(self.engine.device), self._game_seeds.to(self.engine.device))
         td = self._observation()
         zeros = torch.zeros(b, 1, dtype=torch.bool, device=self.device)
         td.set(keys.DONE, zeros.clone())
         td.set(keys.TERMINATED, zeros.clone())
         td.set(keys.TRUNCATED, zeros.clone())
         return td
-
-    @property
-    def _engine_device(self) -> torch.device:
-        return self.engine.device if hasattr(self.engine, "device") else torch.device("cpu")
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get(keys.ACTION).reshape(self.batch_size[0]).to(torch.int64)
@@ -174,12 +172,11 @@ class TetrisEnv(EnvBase):
                 f"action={int(action[i])} on board {i} is not a valid placement for piece "
                 f"{int(self.engine.pieces[i])}; allowed: the indices where action_mask is True"
             )
-        lines = self.engine.step(action.to(self._engine_device)).to(self.device)
+        lines = self.engine.step(action.to(self.engine.device)).to(self.device)
         self._lines += lines
-        self._pieces += live.to(torch.int64)
         alive = torch.as_tensor(self.engine.alive, device=self.device)
         terminated = ~alive
-        truncated = alive & (self.max_pieces > 0) & (self._pieces >= self.max_pieces)
+        truncated = alive & (self.max_pieces > 0) & (self._pieces_placed() >= self.max_pieces)
         td = self._observation()
         td.set(keys.REWARD, lines.to(torch.float32).unsqueeze(-1))
         td.set(keys.TERMINATED, terminated.unsqueeze(-1))
