@@ -11,6 +11,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
+from hfrl_torch.agents.cem.fused_rollout import FusedRollout
 from hfrl_torch.common.checkpoint import load_checkpoint
 from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.common.stats import summarize
@@ -21,14 +22,15 @@ from hfrl_torch.experiment.factories import make_rollout, make_rules, set_thread
 NAMED_POLICIES = ("dellacherie", "random")
 
 
-def _tetris_policy(cfg: DictConfig) -> tuple[str, str, torch.Tensor, bool, DictConfig]:
-    """(policy label, feature set, weights, random?, config with the checkpoint's board) of ``policy``."""
+def _tetris_policy(cfg: DictConfig) -> tuple[str, str, torch.Tensor, bool, DictConfig, dict | None]:
+    """(policy label, feature set, weights, random?, config with the checkpoint's board, the fused policy's
+    H^ part or None) of ``policy``."""
     name = "dellacherie" if cfg.policy is None else str(cfg.policy)
     if name == "dellacherie":
-        return name, "dellacherie", torch.tensor(DELLACHERIE_WEIGHTS, dtype=torch.float64), False, cfg
+        return name, "dellacherie", torch.tensor(DELLACHERIE_WEIGHTS, dtype=torch.float64), False, cfg, None
     if name == "random":
         w = torch.zeros(feature_size(feature_id("bt"), cfg.domain.width), dtype=torch.float64)
-        return name, "bt", w, True, cfg
+        return name, "bt", w, True, cfg, None
     path = Path(name)
     if not name.strip() or not path.exists():
         raise ConfigError(
@@ -46,6 +48,7 @@ def _tetris_policy(cfg: DictConfig) -> tuple[str, str, torch.Tensor, bool, DictC
         torch.as_tensor(policy["weights"], dtype=torch.float64),
         False,
         cfg,
+        policy if policy.get("kind") == "fused" else None,
     )
 
 
@@ -61,7 +64,7 @@ def evaluate_tetris(cfg: DictConfig, progress: bool = True) -> dict[str, object]
     games = require_int(cfg, "games", 1)
     require_int(cfg, "seed", 0, 2**62)
     threads = set_threads(cfg)
-    label, features, weights, random_policy, cfg = _tetris_policy(cfg)
+    label, features, weights, random_policy, cfg, fused = _tetris_policy(cfg)
     rules = make_rules(cfg)
     if weights.numel() != feature_size(feature_id(features), rules.width):
         raise ConfigError(
@@ -69,6 +72,22 @@ def evaluate_tetris(cfg: DictConfig, progress: bool = True) -> dict[str, object]
             f"which need {feature_size(feature_id(features), rules.width)} on a board {rules.width} wide"
         )
     rollout = make_rollout(cfg, features=features, random_policy=random_policy)
+    feature_label = features
+    if fused is not None:
+        rollout = FusedRollout(
+            rules,
+            features,
+            fused["human_features"],
+            fused["scheme"],
+            fused["normalise"],
+            cfg.domain.max_pieces,
+        )
+        rollout.human_weights = torch.as_tensor(fused["human_weights"], dtype=torch.float64)
+        rollout.weight = float(fused["weight"])
+        feature_label = (
+            f"{features} fused with H^ over {fused['human_features']} "
+            f"({fused['scheme']}, w={rollout.weight:.3g})"
+        )
     gen = torch.Generator().manual_seed(int(cfg.seed))
     seeds = torch.randint(0, 2**62, (games,), generator=gen, dtype=torch.int64)
 
@@ -79,7 +98,7 @@ def evaluate_tetris(cfg: DictConfig, progress: bool = True) -> dict[str, object]
     with tqdm(total=games, desc=f"eval {Path(label).name}", unit="game", disable=not progress) as bar:
         for i in range(0, games, chunk):
             s = seeds[i : i + chunk]
-            ln, pc, cp = rollout(weights.expand(len(s), -1), s)
+            ln, pc, cp, *_ = rollout(weights.expand(len(s), -1), s)
             lines.append(ln)
             pieces.append(pc)
             capped_list.append(cp)
@@ -93,7 +112,7 @@ def evaluate_tetris(cfg: DictConfig, progress: bool = True) -> dict[str, object]
     return {
         "domain": "tetris",
         "policy": label,
-        "features": features,
+        "features": feature_label,
         "rules": rules.describe(),
         "board": f"{rules.width}x{rules.height}",
         "games": games,

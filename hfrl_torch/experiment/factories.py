@@ -22,10 +22,20 @@ from hfrl_torch.envs.tetris.features import feature_id, feature_size
 from hfrl_torch.envs.tetris.rules import TetrisRules
 from hfrl_torch.feedback.credit import CreditModel, GammaDelay, PreviousStep, UniformDelay
 from hfrl_torch.feedback.log import FeedbackLog
+from hfrl_torch.fusion.schedules import AnnealedWeight, ConstantWeight, TrustWeight, WeightSchedule
 
 DOMAINS = ("tetris",)
 AGENTS = ("cem", "tamer")
-FUSIONS = ("none",)
+FUSIONS = (
+    "none",
+    "human_only",
+    "linear",
+    "exponential",
+    "annealed",
+    "action_biasing",
+    "control_sharing",
+    "reward_shaping",
+)
 TRAINERS = ("none", "oracle", "value_proxy", "replay")
 CREDITS = ("previous_step", "gamma", "uniform")
 FEATURE_SETS = ("bt", "knox", "dellacherie", "dt")
@@ -143,28 +153,58 @@ def make_cem_config(cfg: DictConfig) -> CEMConfig:
 
 
 def make_credit(cfg: DictConfig) -> CreditModel:
-    """TAMER's credit assignment from ``agent.credit``."""
-    name = require_choice(cfg, "agent.credit", CREDITS)
+    """H^'s credit assignment from ``human.credit``."""
+    name = require_choice(cfg, "human.credit", CREDITS)
     if name == "previous_step":
         return PreviousStep()
     if name == "gamma":
         return GammaDelay(
-            require_float(cfg, "agent.gamma_shape", 1e-6), require_float(cfg, "agent.gamma_scale", 1e-6)
+            require_float(cfg, "human.gamma_shape", 1e-6), require_float(cfg, "human.gamma_scale", 1e-6)
         )
-    low = require_float(cfg, "agent.uniform_low", 0.0)
-    return UniformDelay(low, require_float(cfg, "agent.uniform_high", low + 1e-6))
+    low = require_float(cfg, "human.uniform_low", 0.0)
+    return UniformDelay(low, require_float(cfg, "human.uniform_high", low + 1e-6))
+
+
+def check_human(cfg: DictConfig) -> None:
+    """Check ``human``, the settings of H^ (TAMER's model of the feedback)."""
+    require_choice(cfg, "human.name", ("linear",))
+    require_float(cfg, "human.alpha", 1e-12)
+    require_choice(cfg, "human.features", ("knox", "bt"))
+    make_credit(cfg)
+    require_float(cfg, "human.window", 1e-6)
+    require_bool(cfg, "human.renormalise")
+    require_float(cfg, "human.seconds_per_placement", 1e-6)
 
 
 def check_tamer(cfg: DictConfig) -> None:
-    """Check ``agent`` for TAMER."""
+    """Check ``agent`` for TAMER, and ``human``."""
     require_int(cfg, "agent.games", 1)
     require_int(cfg, "agent.learners", 1, 100_000)
-    require_float(cfg, "agent.alpha", 1e-12)
-    require_choice(cfg, "agent.features", ("knox", "bt"))
-    make_credit(cfg)
-    require_float(cfg, "agent.window", 1e-6)
-    require_bool(cfg, "agent.renormalise")
-    require_float(cfg, "agent.seconds_per_placement", 1e-6)
+    check_human(cfg)
+
+
+def make_weight_schedule(cfg: DictConfig) -> WeightSchedule:
+    """The weight on H^ of ``fusion``: the trust factor (eq. 4.4), annealed (Knox & Stone) or fixed."""
+    name = require_choice(cfg, "fusion.name", FUSIONS)
+    if name in ("none", "human_only"):
+        return ConstantWeight(0.0)
+    if name == "annealed":
+        return AnnealedWeight(
+            require_float(cfg, "fusion.weight", 0.0), require_float(cfg, "fusion.factor", 1e-9, 1.0)
+        )
+    weight = OmegaConf.select(cfg, "fusion.weight")
+    if weight == "trust":
+        return TrustWeight.from_initial(require_float(cfg, "fusion.initial_trust", 0.0))
+    if isinstance(weight, str):
+        raise ConfigError(f"fusion.weight={weight!r} is invalid; allowed: trust, or a number >= 0")
+    return ConstantWeight(require_float(cfg, "fusion.weight", 0.0))
+
+
+def fusion_normalises(cfg: DictConfig) -> bool:
+    """Whether ``fusion`` rescales R and H^ to [0, 1] per decision (false: the scheme has no such key)."""
+    if OmegaConf.select(cfg, "fusion.normalise") is None:
+        return False
+    return require_bool(cfg, "fusion.normalise")
 
 
 def make_trainer(cfg: DictConfig, log: FeedbackLog | None):
@@ -241,18 +281,34 @@ def validate_train_config(cfg: DictConfig) -> None:
     require_int(cfg, "threads", 1, 256)
     agent = require_choice(cfg, "agent.name", AGENTS)
     trainer = cfg.trainer.name
+    fusion = cfg.fusion.name
     if agent == "cem":
         make_cem_config(cfg)
-        if trainer != "none":
+        make_weight_schedule(cfg)
+        fusion_normalises(cfg)
+        if fusion != "none" and trainer == "none":
             raise ConfigError(
-                f"trainer={trainer!r} with agent=cem needs a fusion scheme, which is not built yet; "
-                "allowed with cem: trainer=none (use agent=tamer to learn from a trainer)"
+                f"fusion={fusion!r} fuses the trainer's H^ with the environment; choose a trainer: "
+                "oracle, value_proxy, replay (or fusion=none)"
             )
+        if trainer != "none":
+            check_human(cfg)
+            require_int(cfg, "agent.watch_pieces", 1)
+            if cfg.domain.features != "bt":
+                raise ConfigError(
+                    f"domain.features={cfg.domain.features!r} with a trainer: CE + human feedback "
+                    "fuses over the bt features (a prefix of H^'s knox set); allowed: bt"
+                )
     else:
         check_tamer(cfg)
+        if fusion != "none":
+            raise ConfigError(
+                f"fusion={fusion!r} with agent=tamer: TAMER acts on H^ alone; use fusion=none, "
+                "or agent=cem fusion=human_only to run H^ inside the combined learner"
+            )
         if trainer == "none":
             raise ConfigError(
                 "agent=tamer learns only from feedback; choose a trainer: oracle, value_proxy, replay"
             )
-        if trainer == "replay" and not OmegaConf.select(cfg, "trainer.log"):
-            raise ConfigError("trainer=replay needs trainer.log=<feedback log file>")
+    if trainer == "replay" and not OmegaConf.select(cfg, "trainer.log"):
+        raise ConfigError("trainer=replay needs trainer.log=<feedback log file>")

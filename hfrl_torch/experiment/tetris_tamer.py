@@ -138,7 +138,7 @@ def train_tamer(cfg: DictConfig, run_dir: Path) -> dict[str, float]:
     from hfrl_torch.experiment.factories import make_credit, make_rules, make_run_logger, make_trainer
 
     rules = make_rules(cfg)
-    a = cfg.agent
+    a, hm = cfg.agent, cfg.human
     log = FeedbackLog(run_dir / "feedback.jsonl", session=run_dir.name)
     trainer = make_trainer(cfg, log)
     source = trainer.source if trainer.source != "trainer" else f"simulated:{cfg.trainer.name}"
@@ -154,15 +154,15 @@ def train_tamer(cfg: DictConfig, run_dir: Path) -> dict[str, float]:
             rules,
             a.games,
             trainer,
-            a.alpha,
+            hm.alpha,
             learners=a.learners,
             seed=cfg.seed,
-            features=a.features,
+            features=hm.features,
             credit=make_credit(cfg),
-            window=a.window,
-            renormalise=a.renormalise,
+            window=hm.window,
+            renormalise=hm.renormalise,
             max_pieces=cfg.domain.max_pieces,
-            seconds_per_placement=a.seconds_per_placement,
+            seconds_per_placement=hm.seconds_per_placement,
             on_games_done=bar.update,
         )
     finally:
@@ -198,8 +198,8 @@ def train_tamer(cfg: DictConfig, run_dir: Path) -> dict[str, float]:
             # argmax_a w.(f(s'_a) - f(s)) = argmax_a w.f(s'_a): H^ acts as a linear afterstate policy
             "policy": {
                 "kind": "linear",
-                "features": a.features,
-                "feature_names": feature_names(feature_id(a.features), rules.width),
+                "features": hm.features,
+                "feature_names": feature_names(feature_id(hm.features), rules.width),
                 "weights": weights[0].clone(),
                 "note": "learner 0 of the run",
             },

@@ -13,9 +13,10 @@ from hfrl_torch.common.checkpoint import LAST, load_checkpoint
 from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.experiment.factories import set_threads, validate_train_config
 from hfrl_torch.experiment.tetris_cem import train_cem
+from hfrl_torch.experiment.tetris_cem_hf import train_cem_hf
 from hfrl_torch.experiment.tetris_tamer import train_tamer
 
-GROUPS = ("domain", "agent", "fusion", "trainer", "logger")
+GROUPS = ("domain", "agent", "fusion", "human", "trainer", "logger")
 TRAINER_LABELS = {
     "oracle": "simulated oracle trainer",
     "value_proxy": "simulated value-proxy trainer",
@@ -98,7 +99,12 @@ def train(cfg: DictConfig) -> Path:
     signal.signal(signal.SIGTERM, _interrupt)  # a scheduler's stop ends the run like Ctrl-C
     signal.signal(signal.SIGINT, _interrupt)
     try:
-        final = train_cem(cfg, run_dir, checkpoint) if agent == "cem" else train_tamer(cfg, run_dir)
+        if agent == "tamer":
+            final = train_tamer(cfg, run_dir)
+        elif cfg.trainer.name == "none":
+            final = train_cem(cfg, run_dir, checkpoint)
+        else:
+            final = train_cem_hf(cfg, run_dir, checkpoint)
     except KeyboardInterrupt:
         interrupted = True
         final = {}

@@ -13,12 +13,19 @@ from collections import deque
 from dataclasses import asdict, dataclass
 from typing import Any, Literal
 
+import torch
+
+from hfrl_torch import keys
+
 __all__ = [
     "MAX_ABS_FEEDBACK",
+    "SOURCE_KINDS",
     "FeedbackEvent",
     "FeedbackQueue",
     "FeedbackQueueClosedError",
     "FeedbackQueueFullError",
+    "feedback_tensors",
+    "source_kind",
 ]
 
 MAX_ABS_FEEDBACK = 1e3
@@ -156,3 +163,30 @@ class FeedbackQueue:
     def __len__(self) -> int:
         with self._cond:
             return len(self._events)
+
+
+SOURCE_KINDS: tuple[str, ...] = ("none", "human", "simulated", "replay", "queue", "other")
+
+
+def source_kind(source: str) -> int:
+    """The code of ``source`` in ``SOURCE_KINDS`` (by its prefix before ``:``): 0 = no feedback."""
+    kind = source.split(":", 1)[0]
+    return SOURCE_KINDS.index(kind) if kind in SOURCE_KINDS[1:] else SOURCE_KINDS.index("other")
+
+
+def feedback_tensors(events: list[list[FeedbackEvent]]) -> dict[str, torch.Tensor]:
+    """One step's events of B boards as the tensordict's feedback entries, each ``[B, 1]``.
+
+    ``human_feedback``: the sum of the values given (0: none); ``human_feedback_time``: the time of the
+    latest event (NaN: none); ``human_feedback_source``: the ``SOURCE_KINDS`` code of its source (0: none).
+    """
+    b = len(events)
+    value = torch.tensor([sum(e.value for e in evs) for evs in events], dtype=torch.float64).view(b, 1)
+    when = torch.tensor(
+        [max((e.time for e in evs), default=math.nan) for evs in events], dtype=torch.float64
+    ).view(b, 1)
+    kind = torch.tensor(
+        [source_kind(max(evs, key=lambda e: e.time).source) if evs else 0 for evs in events],
+        dtype=torch.int64,
+    ).view(b, 1)
+    return {keys.FEEDBACK: value, keys.FEEDBACK_TIME: when, keys.FEEDBACK_SOURCE: kind}

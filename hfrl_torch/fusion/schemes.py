@@ -32,6 +32,7 @@ __all__ = [
     "FusedActionSelector",
     "Scheme",
     "fuse_values",
+    "rescale_range",
     "signed_power",
 ]
 
@@ -149,6 +150,26 @@ def fuse_values(
     return r * (1.0 + signed_power(h, w))
 
 
+def rescale_range(values: Tensor, mask: Tensor, terminal: Tensor | None = None) -> Tensor:
+    """``(v - min) / (max - min)`` over each row's choosable actions, ``[..., A]`` float64 (0: all equal).
+
+    Choosable: valid, and not game-ending unless every valid action ends the game (the greedy rule). R (CE
+    afterstate values, hundreds) and H^ (feedback units, about 1) differ in scale by orders of magnitude; on
+    a common [0, 1] scale a weight w in ``R + w H^`` says how much H^ counts next to R, which is what a
+    trust factor in [0, 1] means. Actions outside the choosable set may fall outside [0, 1].
+    """
+    keep = mask
+    if terminal is not None:
+        safe = mask & ~terminal
+        keep = torch.where(safe.any(-1, keepdim=True), safe, mask)
+    v = values.to(torch.float64)
+    lo = v.masked_fill(~keep, torch.inf).amin(-1, keepdim=True)
+    hi = v.masked_fill(~keep, -torch.inf).amax(-1, keepdim=True)
+    span = hi - lo
+    ok = span > 0
+    return torch.where(ok, (v - lo) / torch.where(ok, span, 1.0), 0.0)
+
+
 class FusedActionSelector(nn.Module):
     """Choose one action per board from R and H^ under a decision-level scheme (thesis eq. 4.1).
 
@@ -162,6 +183,8 @@ class FusedActionSelector(nn.Module):
     :param scheme: one of ``DECISION_SCHEMES``.
     :param weight: ``w`` / ``beta``: a number, one number per board, or a :class:`WeightSchedule`.
     :param generator: the random source of control sharing (CPU); None: a fresh one seeded with 0.
+    :param normalise: rescale R and H^ to [0, 1] over each board's choosable actions before fusing them
+        (:func:`rescale_range`; ``linear``, ``exponential`` and ``action_biasing``).
 
     After each call, ``last_followed_human`` (bool, one per board) says which boards followed H^'s argmax
     (control sharing), or is None for the other schemes.
@@ -172,6 +195,7 @@ class FusedActionSelector(nn.Module):
         scheme: str,
         weight: float | Sequence[float] | Tensor | WeightSchedule = 1.0,
         generator: torch.Generator | None = None,
+        normalise: bool = False,
     ) -> None:
         super().__init__()
         if scheme not in DECISION_SCHEMES:
@@ -181,6 +205,7 @@ class FusedActionSelector(nn.Module):
         self.scheme = scheme
         self.schedule = as_schedule(weight)
         self.generator = generator if generator is not None else torch.Generator().manual_seed(0)
+        self.normalise = normalise
         self.last_followed_human: Tensor | None = None
 
     def weight(self, episode: int | Tensor | None = None) -> Tensor:
@@ -213,7 +238,10 @@ class FusedActionSelector(nn.Module):
         w = self.weight(episode)
         if self.scheme != "control_sharing":
             self.last_followed_human = None
-            return greedy_placement(fuse_values(env_values, human_values, self.scheme, w), mask, terminal)
+            r, h = env_values, human_values
+            if self.normalise and self.scheme not in ("none", "human_only"):
+                r, h = rescale_range(r, mask, terminal), rescale_range(h, mask, terminal)
+            return greedy_placement(fuse_values(r, h, self.scheme, w), mask, terminal)
         by_env = greedy_placement(env_values, mask, terminal)
         by_human = greedy_placement(human_values, mask, terminal)
         u = torch.rand(
@@ -242,4 +270,4 @@ class FusedActionSelector(nn.Module):
         self.generator.set_state(state["generator"])
 
     def extra_repr(self) -> str:
-        return f"scheme={self.scheme!r}, weight={self.schedule!r}"
+        return f"scheme={self.scheme!r}, weight={self.schedule!r}, normalise={self.normalise}"

@@ -16,11 +16,13 @@ from __future__ import annotations
 
 import re
 from abc import ABC, abstractmethod
+from typing import Any
 
 import torch
 from tensordict import TensorDictBase
 
 from hfrl_torch import keys
+from hfrl_torch.common.errors import CheckpointError
 from hfrl_torch.feedback.events import FeedbackEvent
 from hfrl_torch.feedback.log import FeedbackLog
 
@@ -69,6 +71,31 @@ class Trainer(ABC):
 
     def end_games(self, done: torch.Tensor, lines: torch.Tensor) -> None:  # noqa: B027  (optional hook)
         """Told that the games of the boards where ``done`` [B] is set ended with ``lines`` [B] lines."""
+
+    def state_dict(self) -> dict[str, Any]:
+        """What a resumed run needs to continue this trainer as if never stopped: its generator's state, its
+        count, and the state of the trainer it wraps (if any)."""
+        state: dict[str, Any] = {"given": self.given}
+        generator = getattr(self, "generator", None)
+        if isinstance(generator, torch.Generator):
+            state["generator"] = generator.get_state()
+        inner = getattr(self, "trainer", None)
+        if isinstance(inner, Trainer):
+            state["inner"] = inner.state_dict()
+        return state
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore :meth:`state_dict`'s output; another kind of trainer's state raises ``CheckpointError``."""
+        try:
+            self.given = int(state["given"])
+            generator = getattr(self, "generator", None)
+            if isinstance(generator, torch.Generator):
+                generator.set_state(state["generator"])
+            inner = getattr(self, "trainer", None)
+            if isinstance(inner, Trainer):
+                inner.load_state_dict(state["inner"])
+        except (KeyError, TypeError, ValueError, RuntimeError) as e:
+            raise CheckpointError(f"bad {type(self).__name__} state in the checkpoint ({e!r})") from None
 
     def _one_per_board(
         self,

@@ -22,10 +22,12 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import replace
+from typing import Any
 
 import torch
 from tensordict import TensorDictBase
 
+from hfrl_torch.common.errors import CheckpointError
 from hfrl_torch.feedback.credit import DelayDensity, GammaDelay, UniformDelay
 from hfrl_torch.feedback.log import FeedbackLog
 from hfrl_torch.trainers.base import Events, Trainer, all_active
@@ -179,6 +181,30 @@ class HumanLikeTiming(Trainer):
                 out.append(replace(ev, time=time + float(delays[i, j]), value=value))
             events.append(out)
         return self._emit(events)
+
+    def state_dict(self) -> dict[str, Any]:
+        """The base state plus the session start, the absences, the games seen and the recent lines."""
+        return {
+            **super().state_dict(),
+            "start": self.start,
+            "absent": None if self.absent is None else self.absent.clone(),
+            "episode": None if self.episode is None else self.episode.clone(),
+            "recent": [list(r) for r in self.recent],
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        super().load_state_dict(state)
+        try:
+            self.start = None if state["start"] is None else float(state["start"])
+            self.absent = (
+                None if state["absent"] is None else torch.as_tensor(state["absent"], dtype=torch.bool)
+            )
+            self.episode = (
+                None if state["episode"] is None else torch.as_tensor(state["episode"], dtype=torch.int64)
+            )
+            self.recent = [deque((float(x) for x in r), maxlen=self.tail_games) for r in state["recent"]]
+        except (KeyError, TypeError, ValueError) as e:
+            raise CheckpointError(f"bad HumanLikeTiming state in the checkpoint ({e!r})") from None
 
     def end_games(self, done: torch.Tensor, lines: torch.Tensor) -> None:
         for i in torch.nonzero(done.reshape(-1).cpu()).flatten().tolist():

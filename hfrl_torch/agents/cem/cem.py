@@ -19,8 +19,9 @@ import torch
 
 from hfrl_torch.common.stats import summarize
 
-# (weights [N, F], game seeds [N]) -> (lines [N], pieces [N], capped [N]: stopped by the piece limit)
-Rollout = Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
+# (weights [N, F], game seeds [N]) -> (lines [N], pieces [N], capped [N]: stopped by the piece limit),
+# optionally followed by a shaping bonus [N] added to the lines when candidates are ranked (reward shaping).
+Rollout = Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, ...]]
 
 NOISE_SCHEDULES = ("constant", "decreasing", "none")
 
@@ -91,34 +92,39 @@ class CrossEntropyMethod:
         game_seeds = torch.randint(0, 2**62, (c.games_per_candidate,), generator=game_gen, dtype=torch.int64)
         weights = candidates.repeat_interleave(c.games_per_candidate, dim=0)
         seeds = game_seeds.repeat(c.population)
-        lines, pieces, capped = self.rollout(weights, seeds)
-        scores = lines.to(torch.float64).view(c.population, c.games_per_candidate).mean(1)
+        lines, pieces, capped, *bonus = self.rollout(weights, seeds)
+        fitness = lines.to(torch.float64) + (bonus[0].to(torch.float64) if bonus else 0.0)
+        scores = fitness.view(c.population, c.games_per_candidate).mean(1)
+        lines_per_candidate = lines.to(torch.float64).view(c.population, c.games_per_candidate).mean(1)
 
         elite = torch.argsort(scores, descending=True, stable=True)[: c.n_elite]
         self.mean = candidates[elite].mean(0)
         self.variance = candidates[elite].var(0, unbiased=False) + self.noise(t)
         self.iteration += 1
 
-        pop = summarize(scores, floor=0.0)
-        return {
+        pop = summarize(lines_per_candidate, floor=0.0)
+        metrics = {
             "population/lines_mean": pop["mean"],
             "population/lines_median": pop["median"],
             "population/lines_ci95_low": pop["ci95_low"],
             "population/lines_ci95_high": pop["ci95_high"],
             "population/lines_best": pop["max"],
-            "population/elite_lines_mean": float(scores[elite].mean()),
+            "population/elite_lines_mean": float(lines_per_candidate[elite].mean()),
             "population/placements": float(pieces.sum()),
             "population/capped_share": float(capped.double().mean()),
             "cem/noise": self.noise(t),
             "cem/std_mean": float(self.variance.sqrt().mean()),
         }
+        if bonus:
+            metrics["population/shaping_bonus_mean"] = float(bonus[0].to(torch.float64).mean())
+        return metrics
 
     def evaluate_mean(self, games: int | None = None) -> torch.Tensor:
         """Lines per game of the current mean weights on fresh games of this iteration."""
         n = self.config.eval_games if games is None else games
         gen = torch.Generator().manual_seed(_derived_seed(self.seed, self.iteration, 2))
         seeds = torch.randint(0, 2**62, (n,), generator=gen, dtype=torch.int64)
-        lines, pieces, capped = self.rollout(self.mean.expand(n, -1), seeds)
+        lines, pieces, capped, *_ = self.rollout(self.mean.expand(n, -1), seeds)
         self.last_eval_pieces = int(pieces.sum())
         self.last_eval_capped = int(capped.sum())
         return lines

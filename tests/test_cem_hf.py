@@ -1,0 +1,163 @@
+"""CE + human feedback (thesis Figure 4.1) through its training loop and through train.py / evaluate.py."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+from hfrl_torch.common.checkpoint import load_checkpoint
+from hfrl_torch.experiment.tetris_cem_hf import train_cem_hf
+from hfrl_torch.feedback.log import load_feedback_log
+
+ROOT = Path(__file__).resolve().parent.parent
+TINY = [
+    "domain.width=6",
+    "domain.height=8",
+    "agent.population=10",
+    "agent.games_per_candidate=2",
+    "agent.eval_games=4",
+    "agent.watch_pieces=40",
+    "logger.backend=none",
+]
+
+
+def _cfg(*overrides: str):
+    with initialize_config_dir(str(ROOT / "conf"), version_base=None):
+        return compose("train", overrides=[*TINY, *overrides])
+
+
+def _events(run_dir: Path) -> list[tuple]:
+    return [(e.time, e.value, e.step, e.episode) for e in load_feedback_log(run_dir / "feedback.jsonl")]
+
+
+def _curves(run_dir: Path) -> list[dict]:
+    rows = [json.loads(x) for x in (run_dir / "metrics.jsonl").read_text().splitlines()]
+    return [{k: v for k, v in r.items() if not k.startswith("time/")} for r in rows]
+
+
+@pytest.mark.parametrize("fusion", ["linear", "control_sharing"])
+def test_resumed_run_equals_an_uninterrupted_one(tmp_path, fusion):
+    over = ["fusion=" + fusion, "trainer=oracle", "seed=3"]
+    whole, part = tmp_path / "whole", tmp_path / "part"
+    whole.mkdir()
+    part.mkdir()
+    train_cem_hf(_cfg(*over, "agent.iterations=4"), whole, None)
+    train_cem_hf(_cfg(*over, "agent.iterations=2"), part, None)
+    train_cem_hf(_cfg(*over, "agent.iterations=4"), part, load_checkpoint(part))
+    assert _curves(whole) == _curves(part)
+    assert _events(whole) == _events(part) and len(_events(whole)) > 10
+    a, b = load_checkpoint(whole)["policy"], load_checkpoint(part)["policy"]
+    assert torch.equal(a["weights"], b["weights"]) and torch.equal(a["human_weights"], b["human_weights"])
+
+
+def test_trust_is_updated_by_eq_4_4_from_the_test_lines_and_match_rate(tmp_path):
+    over = ["fusion=linear", "trainer=oracle", "trainer.consistency=0.3", "agent.iterations=4"]
+    train_cem_hf(_cfg(*over), tmp_path, None)
+    rows = _curves(tmp_path)
+    assert rows[0]["fusion/weight"] == 0.5  # fusion.initial_trust
+    previous = None
+    for r in rows:
+        w, lines, m = r["fusion/weight"], r["eval/mean_policy_lines_mean"], r["fusion/match_rate"]
+        assert 0.0 <= m <= 1.0
+        l1 = lines if previous is None else previous  # first update: l1 = l2
+        expected = (l1 * w + lines * m) / (l1 + lines) if l1 + lines > 0 else w
+        assert r["fusion/weight_next"] == pytest.approx(expected, rel=1e-12)
+        previous = lines
+    assert len({r["fusion/weight"] for r in rows}) > 1
+
+
+def test_annealed_weight_decays_by_its_factor_each_iteration(tmp_path):
+    train_cem_hf(
+        _cfg("fusion=annealed", "fusion.factor=0.5", "trainer=oracle", "agent.iterations=3"), tmp_path, None
+    )
+    assert [r["fusion/weight"] for r in _curves(tmp_path)] == [1.0, 0.5, 0.25]
+
+
+def _run(script: str, *args: str, **kw) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, str(ROOT / script), *args],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        **kw,
+    )
+
+
+def test_train_exponential_then_evaluate_then_replay_the_log(tmp_path):
+    run_dir = tmp_path / "exp"
+    out = _run(
+        "train.py",
+        "fusion=exponential",
+        "trainer=oracle",
+        "agent.iterations=2",
+        *TINY,
+        f"hydra.run.dir={run_dir}",
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "Done: mean policy" in out.stderr
+    ev = _run("evaluate.py", f"policy={run_dir}", "games=4")
+    assert ev.returncode == 0, ev.stderr[-2000:]
+    res = json.loads(ev.stdout.strip().splitlines()[-1])
+    assert "fused with H^ over knox (exponential" in res["features"] and res["board"] == "6x8"
+
+    replay_dir = tmp_path / "replay"
+    log = run_dir / "feedback.jsonl"
+    out = _run(
+        "train.py",
+        "fusion=linear",
+        "trainer=replay",
+        f"trainer.log={log}",
+        "agent.iterations=2",
+        *TINY,
+        f"hydra.run.dir={replay_dir}",
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    replayed = load_feedback_log(replay_dir / "feedback.jsonl")
+    assert replayed and {e.source for e in replayed} == {"replay"}
+
+
+def test_killed_run_keeps_every_event_and_resumes(tmp_path):
+    """kill -9 mid-run: the log holds every event given before the kill; resume continues it."""
+    run_dir = tmp_path / "crash"
+    args = ["fusion=linear", "trainer=oracle", "agent.iterations=400", *TINY, f"hydra.run.dir={run_dir}"]
+    proc = subprocess.Popen(
+        [sys.executable, str(ROOT / "train.py"), *args],
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    ckpt = run_dir / "checkpoints" / "last.pt"
+    deadline = time.time() + 120
+    while time.time() < deadline and not (ckpt.exists() and len(_events_or_empty(run_dir)) >= 30):
+        time.sleep(0.2)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    before = _events(run_dir)
+    assert len(before) >= 30
+    done = load_checkpoint(run_dir)["state"]["cem"]["iteration"]
+    assert 1 <= done < 400
+
+    out = _run(
+        "train.py", f"resume={run_dir}", f"agent.iterations={done + 2}", f"hydra.run.dir={tmp_path / 'r'}"
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    after = _events(run_dir)
+    assert after[: len(before)] == before and len(after) > len(before)
+    assert load_checkpoint(run_dir)["state"]["cem"]["iteration"] == done + 2
+
+
+def _events_or_empty(run_dir: Path) -> list:
+    try:
+        return _events(run_dir)
+    except Exception:
+        return []
