@@ -20,6 +20,7 @@ from hfrl_torch.envs.keepaway import (
     render_rgb,
     write_gif,
 )
+from hfrl_torch.envs.keepaway.referee import END_TAKEN
 
 
 @pytest.mark.parametrize(
@@ -162,3 +163,20 @@ def test_benchmark_runner_fields() -> None:
 def test_larger_teams_play_episodes(keepers: int, takers: int) -> None:
     result = play_benchmark_policy("random", 8, keepers=keepers, takers=takers, batch=8, progress=False)
     assert result["episodes"] == 8 and result["mean_s"] > 0.5
+
+
+@pytest.mark.parametrize("preset", ["2005", "rcss19"])
+def test_always_hold_episodes_are_taken_within_a_bounded_time(preset: str) -> None:
+    """Always Hold against the takers must end, mostly by a turnover, within seconds (the
+    reference HoldBall side rule froze it in a turn-only cycle, docs/keepaway.md item 14)."""
+    sim = KeepawaySimulator(64, KeepawayConfig(preset=preset), seed=7)
+    ended = torch.zeros(64, dtype=torch.bool)
+    cause = torch.zeros(64, dtype=torch.long)
+    for _ in range(200):
+        out = sim.step(torch.zeros(64, dtype=torch.long), active=~ended)
+        cause = torch.where(out.ended, out.end_cause, cause)
+        ended |= out.ended
+        if bool(ended.all()):
+            break
+    assert bool(ended.all())
+    assert (cause == END_TAKEN).float().mean().item() > 0.6

@@ -10,11 +10,13 @@ import torch
 from hfrl_torch.envs.keepaway.params import physics_preset
 from hfrl_torch.envs.keepaway.physics import KICK_KIND, TURN_KIND, kick_power_rate
 from hfrl_torch.envs.keepaway.skills import (
+    freeze_ball,
     get_open_grid,
     get_open_target,
     hold_ball,
     in_pass_cone,
     intercept_estimate,
+    kick_ball_close_to_body,
     pass_ball,
     pass_speed,
 )
@@ -101,6 +103,67 @@ def test_hold_ball_turns_when_ball_already_on_spot() -> None:
         P,
     )
     assert cmd[0, 0].item() == TURN_KIND
+
+
+def _ball_velocity_after(cmd: torch.Tensor, me, body, ball, ball_vel) -> torch.Tensor:
+    rate = kick_power_rate(me, body, ball, P)
+    return ball_vel + (cmd[:, 1] * rate).unsqueeze(-1) * torch.stack(
+        (torch.cos(body + cmd[:, 2]), torch.sin(body + cmd[:, 2])), dim=-1
+    )
+
+
+def test_hold_ball_goes_in_front_of_the_body_without_a_taker_within_5m() -> None:
+    me, vel, body = T([[0.0, 0.0]]), T([[0.0, 0.0]]), T([math.pi / 2])
+    ball, ball_vel = T([[0.5, 0.2]]), T([[0.0, 0.0]])
+    cmd = hold_ball(me, vel, body, ball, ball_vel, T([[[-5.1, 0.0], [6.0, 6.0]]]), 0.7, 52.5, P)
+    landed = ball + _ball_velocity_after(cmd, me, body, ball, ball_vel)
+    assert cmd[0, 0].item() == KICK_KIND
+    assert landed[0].tolist() == pytest.approx([0.0, 0.875], abs=1e-4)
+
+
+def test_hold_ball_side_follows_the_ball_not_the_taker_heading() -> None:
+    me, vel, body = T([[0.0, 0.0], [0.0, 0.0]]), T([[0.0, 0.0], [0.0, 0.0]]), T([0.0, 0.0])
+    spot = 0.875 / math.sqrt(2)
+    ball = T([[spot - 0.5, spot], [spot - 0.5, -spot]])  # left / right of the line taker -> me
+    ball_vel = T([[0.0, 0.0], [0.0, 0.0]])
+    taker = T([[[-3.0, 0.0]], [[-3.0, 0.0]]])
+    landed = ball + _ball_velocity_after(
+        hold_ball(me, vel, body, ball, ball_vel, taker, 0.7, 52.5, P), me, body, ball, ball_vel
+    )
+    assert landed.reshape(-1).tolist() == pytest.approx([spot, spot, spot, -spot], abs=1e-4)
+
+
+def test_kick_close_to_body_freezes_a_ball_it_cannot_redirect() -> None:
+    """Swinging a ball that arrives at one 45-degree spot over to the other needs more than the
+    maximum power: the reference's kickBallCloseToBody freezes the ball instead. The spot
+    (0.875 m) lies just beyond 0.8 x 1.085 m, so freezeBall pulls it in to 0.7 x 1.085 m."""
+    me, vel, body = T([[0.0, 0.0]]), T([[0.0, 0.0]]), T([0.0])
+    spot = 0.875 / math.sqrt(2)
+    ball, ball_vel = T([[spot, spot]]), T([[0.0, 1.16]])
+    cmd = kick_ball_close_to_body(me, vel, body, ball, ball_vel, T([-math.pi / 4]), 0.7, P)
+    after = ball + _ball_velocity_after(cmd, me, body, ball, ball_vel)
+    inside = 0.7 * P.kickable_distance / math.sqrt(2)
+    assert cmd[0, 0].item() == KICK_KIND and cmd[0, 1].item() <= 100.0
+    assert after[0].tolist() == pytest.approx([inside, inside], abs=1e-4)
+    # nearer the body the ball is simply stopped
+    near, fast = T([[0.45, 0.45]]), T([[0.0, 1.6]])
+    cmd = kick_ball_close_to_body(me, vel, body, near, fast, T([-math.pi / 4]), 0.7, P)
+    assert _ball_velocity_after(cmd, me, body, near, fast)[0].tolist() == pytest.approx([0.0, 0.0], abs=1e-5)
+    # a slow ball is kicked at full power towards the spot instead
+    slow = kick_ball_close_to_body(me, vel, body, T([[-1.0, 0.0]]), T([[0.0, 0.05]]), T([0.0]), 0.7, P)
+    assert slow[0, 1].item() == pytest.approx(100.0)
+
+
+def test_freeze_pulls_in_a_ball_that_would_stop_outside_the_safe_range() -> None:
+    me, vel, body = T([[0.0, 0.0]]), T([[0.0, 0.0]]), T([0.0])
+    ball, ball_vel = T([[1.0, 0.0]]), T([[0.3, 0.0]])
+    cmd = freeze_ball(me, vel, body, ball, ball_vel, P)
+    after = ball + _ball_velocity_after(cmd, me, body, ball, ball_vel)
+    assert after[0].tolist() == pytest.approx([0.7 * P.kickable_distance, 0.0], abs=1e-4)
+    # a ball that stays well inside is simply stopped
+    inner = freeze_ball(me, vel, body, T([[0.6, 0.0]]), T([[0.3, 0.0]]), P)
+    stopped = _ball_velocity_after(inner, me, body, T([[0.6, 0.0]]), T([[0.3, 0.0]]))
+    assert stopped[0].tolist() == pytest.approx([0.0, 0.0], abs=1e-5)
 
 
 def test_pass_kick_gives_the_wanted_velocity() -> None:

@@ -321,6 +321,39 @@ def accelerate_ball_to_velocity(
     return choose(reachable, exact, strong)
 
 
+def freeze_ball(
+    pos: Tensor,
+    vel: Tensor,
+    body: Tensor,
+    ball_pos: Tensor,
+    ball_vel: Tensor,
+    physics: PhysicsParams,
+    rate: Tensor | None = None,
+) -> Tensor:
+    """Kick that stops the ball where it is (the players' freezeBall).
+
+    The kick opposes the ball's velocity with the power that cancels it (at most the maximum).
+    If the ball would then lie outside 0.8 x the kickable distance of the player's next
+    position, the ball is instead accelerated towards a point at min(0.7 x kickable distance,
+    its distance - 0.1 m) from that position, in its current direction.
+
+    :param rate: the kick power rate, if already known.
+    """
+    me_next = pos + vel
+    if rate is None:
+        rate = kick_power_rate(pos, body, ball_pos, physics)
+    power = (norm(ball_vel) / rate.clamp_min(1e-6)).clamp(max=physics.max_power)
+    against = direction(ball_vel) + math.pi
+    stopped = ball_pos + ball_vel + (power * rate).unsqueeze(-1) * unit(against)
+    stays = norm(stopped - me_next) < 0.8 * physics.kickable_distance
+    freeze = command(KICK_KIND, power, wrap_angle(against - body), body)
+    offset = ball_pos - me_next
+    reach = torch.minimum(norm(offset) - 0.1, torch.full_like(power, 0.7 * physics.kickable_distance))
+    inside = me_next + reach.unsqueeze(-1) * unit(direction(offset))
+    pull_in = accelerate_ball_to_velocity(inside - ball_pos, ball_vel, rate, body, physics)
+    return choose(stays, freeze, pull_in)
+
+
 def kick_ball_close_to_body(
     pos: Tensor,
     vel: Tensor,
@@ -332,14 +365,21 @@ def kick_ball_close_to_body(
     physics: PhysicsParams,
 ) -> Tensor:
     """Kick that puts the ball next cycle at ``player_size + ball_size + ratio * margin`` from
-    the player's next position, in direction ``global_angle``; power capped at the maximum."""
+    the player's next position, in direction ``global_angle`` (kickBallCloseToBody).
+
+    A kick needing more than the maximum power is replaced by :func:`freeze_ball` when the ball
+    moves faster than 0.1 m/cycle, and otherwise kicked at the maximum power.
+    """
     reach = physics.player_size + physics.ball_size + ratio * physics.kickable_margin
     if isinstance(reach, Tensor):
         reach = reach.unsqueeze(-1)
     spot = pos + vel + reach * unit(global_angle)
     rate = kick_power_rate(pos, body, ball_pos, physics)
     kick = kick_for_acceleration(spot - ball_pos - ball_vel, rate, body)
-    return torch.cat((kick[..., :1], kick[..., 1:2].clamp(max=physics.max_power), kick[..., 2:]), dim=-1)
+    too_strong = kick[..., 1] > physics.max_power
+    capped = torch.cat((kick[..., :1], kick[..., 1:2].clamp(max=physics.max_power), kick[..., 2:]), dim=-1)
+    freeze = too_strong & (norm(ball_vel) > 0.1)
+    return choose(freeze, freeze_ball(pos, vel, body, ball_pos, ball_vel, physics, rate), capped)
 
 
 def hold_ball(
@@ -357,11 +397,12 @@ def hold_ball(
 
     With an opponent within 5 m of the player, the ball goes to 45 degrees off the line
     nearest opponent -> me, on whichever side of that line the ball already is; otherwise
-    straight ahead of the body. (The reference measured the opponent's distance to the ball and
-    chose the side from its body heading; with exact information both make the ball jump
-    between two spots every cycle, see docs/keepaway.md.) If the ball already lies within 0.3 m
-    of that spot and stays kickable, the player turns towards the pitch's goal (goal_x, 0)
-    instead of kicking.
+    straight ahead of the body. (The reference took the opponent closest to the ball and chose
+    the side away from its body heading; with exact, every-cycle knowledge of that heading this
+    locks keeper and takers into a cycle where the takers only turn, see docs/keepaway.md item
+    14.) If the ball already lies within 0.3 m of that spot and stays kickable, the player turns
+    towards the pitch's goal (goal_x, 0) instead of kicking. The kick is
+    :func:`kick_ball_close_to_body` (which freezes a fast ball it cannot redirect).
 
     :param opp_pos: opponents [B, M, 2].
     """
