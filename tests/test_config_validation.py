@@ -48,13 +48,35 @@ def test_defaults_are_valid():
         ("threads=0", "threads=0 is invalid: must be an integer in 1..256"),
         ("logger.backend=wandb", "logger.backend='wandb' is invalid; allowed: tensorboard, none"),
         ("fusion=linear", "fusion='linear' fuses the trainer's H^ with the environment; choose a trainer"),
+        (
+            "fusion=linear trainer=oracle fusion.weight=-1",
+            "fusion.weight=-1 is invalid: must be a finite number >= 0.0",
+        ),
+        (
+            "fusion=linear trainer=oracle fusion.weight=much",
+            "fusion.weight='much' is invalid; allowed: trust, or a number",
+        ),
+        ("fusion=annealed trainer=oracle fusion.factor=1.5", "fusion.factor=1.5 is invalid"),
+        (
+            "trainer=interactive trainer.port=70000",
+            "trainer.port=70000 is invalid: must be an integer in 0..65535",
+        ),
+        (
+            "trainer=interactive trainer.keys.bad=/",
+            "'bad': '/', 'pause': 'p', 'presence': 'h'} must be four different keys",
+        ),
+        (
+            "trainer=interactive trainer.keys.good=ab",
+            "trainer.keys.good='ab' is invalid: must be one character",
+        ),
+        ("trainer=interactive trainer.actions_per_s=100", "trainer.actions_per_s=100 is invalid"),
         ("agent.initial_mean=nan", "agent.initial_mean=nan is invalid: must be a finite number"),
         ("agent.initial_variance=inf", "agent.initial_variance=inf is invalid: must be a finite number"),
     ],
 )
 def test_bad_values(override, message):
     with pytest.raises(ConfigError) as info:
-        validate_train_config(_cfg("train", override))
+        validate_train_config(_cfg("train", *override.split()))
     assert message in str(info.value) and "\n" not in str(info.value)
 
 

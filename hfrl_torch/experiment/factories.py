@@ -36,7 +36,7 @@ FUSIONS = (
     "control_sharing",
     "reward_shaping",
 )
-TRAINERS = ("none", "oracle", "value_proxy", "replay")
+TRAINERS = ("none", "oracle", "value_proxy", "replay", "interactive")
 CREDITS = ("previous_step", "gamma", "uniform")
 FEATURE_SETS = ("bt", "knox", "dellacherie", "dt")
 
@@ -291,6 +291,10 @@ def validate_train_config(cfg: DictConfig) -> None:
                 f"fusion={fusion!r} fuses the trainer's H^ with the environment; choose a trainer: "
                 "oracle, value_proxy, replay (or fusion=none)"
             )
+        if trainer == "interactive":
+            from hfrl_torch.interactive.live import check_interactive
+
+            check_interactive(cfg)
         if trainer != "none":
             check_human(cfg)
             require_int(cfg, "agent.watch_pieces", 1)
@@ -309,6 +313,11 @@ def validate_train_config(cfg: DictConfig) -> None:
         if trainer == "none":
             raise ConfigError(
                 "agent=tamer learns only from feedback; choose a trainer: oracle, value_proxy, replay"
+            )
+        if trainer == "interactive":
+            raise ConfigError(
+                "trainer=interactive teaches the combined learner: use agent=cem (fusion=linear by default), "
+                "which keeps learning from the game when you leave"
             )
     if trainer == "replay" and not OmegaConf.select(cfg, "trainer.log"):
         raise ConfigError("trainer=replay needs trainer.log=<feedback log file>")

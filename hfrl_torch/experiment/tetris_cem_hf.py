@@ -22,11 +22,14 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import torch
 from omegaconf import DictConfig, OmegaConf
+from tensordict import TensorDictBase
 from torchrl.envs import TransformedEnv
 from tqdm import tqdm
 
@@ -42,12 +45,19 @@ from hfrl_torch.common.logger import flatten_config, markdown_table
 from hfrl_torch.common.stats import summarize
 from hfrl_torch.envs.tetris import TetrisEnv, TetrisRules
 from hfrl_torch.envs.tetris.features import feature_id, feature_names
+from hfrl_torch.envs.tetris.pieces import PIECE_NAMES, placement_table
 from hfrl_torch.feedback.events import feedback_tensors
 from hfrl_torch.feedback.log import FeedbackLog
 from hfrl_torch.fusion.schedules import ConstantWeight, TrustWeight, WeightSchedule
 from hfrl_torch.fusion.schemes import FusedActionSelector
 from hfrl_torch.fusion.transform import FeedbackFusion
+from hfrl_torch.interactive.session import TeachingSession
+
+if TYPE_CHECKING:
+    from hfrl_torch.interactive.live import LiveTeaching
 from hfrl_torch.trainers.base import Trainer
+
+LATE_FEEDBACK_S = 0.8  # how long a live game waits after its last placement for feedback on it
 
 # The reward-level rule the watched game's FeedbackFusion applies for each scheme: decision-level schemes
 # leave the reward as it is, the annealed baseline is the linear rule.
@@ -75,11 +85,14 @@ def watch_game(
     episode: int,
     clock: float,
     seconds_per_placement: float,
+    live: TeachingSession | None = None,
 ) -> dict[str, float]:
     """The trainer watches the fused policy play one game; H^ learns from every event. Returns its totals.
 
     ``clock`` is the simulated time of the first placement; the game's last events, which arrive after its
-    last placement, are learned too (they credit its last placements).
+    last placement, are learned too (they credit its last placements). With ``live`` (a person in the
+    browser) the game runs on the wall clock at the page's speed, every placement is shown on the page,
+    and the game stops early if the person leaves.
     """
     n_env = env_weights.numel()
     env.set_seed(game_seed)  # a TransformedEnv passes no reset_game_seed down: seed the env's own draw
@@ -88,6 +101,11 @@ def watch_game(
     now = clock
     episode_t = torch.tensor([episode])
     while True:
+        if live is not None:
+            if not live.teaching():
+                totals["lines"] = float(td[keys.LINES].sum())
+                break
+            now = live.wait_turn()
         agent.learn(now)
         deltas = placement_deltas(td)
         human = agent.model(deltas)
@@ -101,6 +119,8 @@ def watch_game(
         td.update(feedback_tensors(events))
         td = env.step(td)
         nxt = td["next"]
+        if live is not None:
+            live.publish(tetris_frame(td, episode, weight=selector.weight().reshape(-1)[0].item()))
         totals["env_return"] += float(nxt[keys.ENV_REWARD].sum())
         totals["fused_return"] += float(nxt[keys.REWARD].sum())
         totals["placements"] += 1
@@ -112,9 +132,43 @@ def watch_game(
             totals["lines"] = float(nxt[keys.LINES].sum())
             break
         td = td["next"]
+    if live is not None and totals["placements"] > 0:  # feedback on the last placements is on its way
+        live.sleep(LATE_FEEDBACK_S)
+        late = trainer.give(td, torch.zeros(1, dtype=torch.int64), live.clock(), episode_t)
+        agent.give_feedback(late)
+        totals["given"] += float(sum(len(e) for e in late))
+        totals["positive"] += float(sum(ev.value > 0 for e in late for ev in e))
     agent.learn(math.inf)
     totals["clock"] = now
     return totals
+
+
+def tetris_frame(td: TensorDictBase, episode: int, weight: float) -> dict[str, Any]:
+    """What the page draws after a placement: the board, the cells just placed, lines, the action."""
+    before = td[keys.BOARD][0]
+    after = td["next", keys.BOARD][0]
+    placed = (
+        (after & ~before).nonzero().tolist()
+        if int(td["next", keys.LINES].sum()) == int(td[keys.LINES].sum())
+        else []
+    )
+    piece = PIECE_NAMES[int(td[keys.PIECE][0])]
+    table = placement_table(before.shape[1])
+    a = int(td[keys.ACTION][0])
+    column, orient = (
+        int(table.column[int(td[keys.PIECE][0]), a]),
+        int(table.orient[int(td[keys.PIECE][0]), a]),
+    )
+    return {
+        "type": "tetris",
+        "board": after.to(torch.int64).tolist(),
+        "placed": placed,
+        "lines": int(td["next", keys.LINES].sum()),
+        "pieces": int(td["next", keys.PIECES_PLACED].sum()),
+        "episode": episode,
+        "action": f"{piece} at column {column + 1}, rotation {orient}",
+        "text": f"watching you (trust in your feedback: {weight:.2f})",
+    }
 
 
 def env_only_match_rate(games_matches: torch.Tensor, pieces: torch.Tensor) -> float | None:
@@ -147,8 +201,18 @@ def train_cem_hf(cfg: DictConfig, run_dir: Path, checkpoint: dict | None) -> dic
     agent = TamerAgent(len(human_names), 1, hm.alpha, make_credit(cfg), hm.window, hm.renormalise)
     schedule: WeightSchedule = make_weight_schedule(cfg)
     log = FeedbackLog(run_dir / "feedback.jsonl", session=run_dir.name)
-    trainer = make_trainer(cfg, log)
-    source = trainer.source if trainer.source != "trainer" else f"simulated:{cfg.trainer.name}"
+    teaching: LiveTeaching | None = None
+    live: TeachingSession | None = None
+    if cfg.trainer.name == "interactive":
+        from hfrl_torch.interactive.live import start_live_teaching
+
+        teaching = start_live_teaching(cfg, log, view="tetris")
+        trainer, live = teaching.trainer, teaching.session
+        who = "a person in the browser (human:browser)"
+    else:
+        trainer = make_trainer(cfg, log)
+        source = trainer.source if trainer.source != "trainer" else f"simulated:{cfg.trainer.name}"
+        who = f"{source} (trainer={cfg.trainer.name}; a simulated or replayed trainer, not a person)"
     history: list[dict[str, float]] = []
     clock = 0.0
     if checkpoint is not None:
@@ -173,11 +237,14 @@ def train_cem_hf(cfg: DictConfig, run_dir: Path, checkpoint: dict | None) -> dic
     logger = make_run_logger(cfg, str(run_dir / "tensorboard"), purge_step=start + 1 if start > 0 else None)
     if start == 0:
         logger.text("hyperparameters", markdown_table(flatten_config(cfg)))
-        logger.text(
-            "trainer",
-            f"{source} (trainer={cfg.trainer.name}; a simulated or replayed trainer, not a person), "
-            f"fusion={scheme}",
-        )
+        logger.text("trainer", f"{who}, fusion={scheme}")
+    if teaching is not None:
+        wait = float(cfg.trainer.wait_for_page_s)
+        tqdm.write(f"Teach the agent in your browser: {teaching.url}", file=sys.stderr)
+        if wait > 0 and start == 0:
+            tqdm.write(f"Waiting up to {wait:g} s for the page to open...", file=sys.stderr)
+            if not teaching.session.wait_for_page(wait):
+                tqdm.write("No page opened: learning from the game alone until one does.", file=sys.stderr)
     ckpt_path = run_dir / "checkpoints" / LAST
     config_yaml = OmegaConf.to_yaml(cfg, resolve=True)
     bar = tqdm(
@@ -211,8 +278,11 @@ def train_cem_hf(cfg: DictConfig, run_dir: Path, checkpoint: dict | None) -> dic
                 t,
                 clock,
                 hm.seconds_per_placement,
+                live,
             )
             clock = watched["clock"]
+            if live is not None:
+                live.publish({"type": "status", "text": f"practising on its own (CE iteration {t + 1})"})
 
             # 2. CE step, candidates acting on R fused with H^
             rollout.human_weights = agent.model.weight[0].detach().clone()
@@ -291,6 +361,8 @@ def train_cem_hf(cfg: DictConfig, run_dir: Path, checkpoint: dict | None) -> dic
             )
             with (run_dir / "metrics.jsonl").open("a") as f:
                 f.write(json.dumps({"iteration": step, **metrics}) + "\n")
+            if live is not None:
+                live.add_point(step, ev["mean"])
             bar.update(1)
             bar.set_postfix(
                 eval_lines=f"{ev['mean']:.1f}",
@@ -300,6 +372,8 @@ def train_cem_hf(cfg: DictConfig, run_dir: Path, checkpoint: dict | None) -> dic
             )
     finally:
         bar.close()
+        if teaching is not None:
+            teaching.stop()
         log.close()
         final = history[-1] if history else {}
         if history and cem.iteration >= cfg.agent.iterations and cem.iteration > start:

@@ -21,6 +21,7 @@ TRAINER_LABELS = {
     "oracle": "simulated oracle trainer",
     "value_proxy": "simulated value-proxy trainer",
     "replay": "replayed feedback log",
+    "interactive": "person in the browser",
 }
 
 

@@ -1,0 +1,129 @@
+"""What the page may send, checked before anything acts on it: type, fields, value ranges, size.
+
+A message is one JSON object per WebSocket text frame. Anything else (binary frames, oversized frames,
+bad JSON, unknown types, missing or extra fields, out-of-range values) raises ``MessageError`` with one
+line naming the bad value and what is allowed; the server logs it, answers with an error message and
+goes on.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from typing import Any
+
+MIN_SPEED = 0.5  # actions per second
+MAX_SPEED = 20.0
+
+
+class MessageError(ValueError):
+    """A message from the page that is rejected (the text says why, in one line)."""
+
+
+@dataclass(frozen=True)
+class Feedback:
+    """The person pressed good (+1) or bad (-1)."""
+
+    value: float
+
+
+@dataclass(frozen=True)
+class Speed:
+    """The person set the agent's speed (actions per second)."""
+
+    actions_per_s: float
+
+
+@dataclass(frozen=True)
+class Pause:
+    """The person paused or resumed the agent."""
+
+    paused: bool
+
+
+@dataclass(frozen=True)
+class Presence:
+    """The person says they are here (teaching) or away (the agent learns from the environment)."""
+
+    here: bool
+
+
+Message = Feedback | Speed | Pause | Presence
+
+_FIELDS: dict[str, tuple[str, ...]] = {
+    "feedback": ("value",),
+    "speed": ("actions_per_s",),
+    "pause": ("paused",),
+    "presence": ("here",),
+}
+
+
+def _number(obj: dict[str, Any], key: str) -> float:
+    v = obj[key]
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise MessageError(f"{key}={v!r} is invalid: must be a finite number")
+    return float(v)
+
+
+def _flag(obj: dict[str, Any], key: str) -> bool:
+    v = obj[key]
+    if not isinstance(v, bool):
+        raise MessageError(f"{key}={v!r} is invalid: must be true or false")
+    return v
+
+
+def parse_message(raw: str | bytes, max_bytes: int = 1024) -> Message:
+    """The message in ``raw`` (one WebSocket text frame), or ``MessageError``."""
+    size = len(raw.encode() if isinstance(raw, str) else raw)
+    if size > max_bytes:
+        raise MessageError(f"message of {size} bytes is too large; allowed: at most {max_bytes}")
+    try:
+        obj = json.loads(raw)
+    except (ValueError, UnicodeDecodeError):
+        raise MessageError("message is not valid JSON; allowed: one JSON object") from None
+    if not isinstance(obj, dict):
+        raise MessageError(f"message is a JSON {type(obj).__name__}; allowed: one JSON object")
+    kind = obj.get("type")
+    if kind not in _FIELDS:
+        raise MessageError(f"type={kind!r} is invalid; allowed: {', '.join(_FIELDS)}")
+    expected = {"type", *_FIELDS[kind]}
+    if set(obj) != expected:
+        raise MessageError(f"a {kind} message has fields {sorted(obj)}; allowed: exactly {sorted(expected)}")
+    if kind == "feedback":
+        value = _number(obj, "value")
+        if value not in (1.0, -1.0):
+            raise MessageError(f"value={obj['value']!r} is invalid; allowed: 1 (good) or -1 (bad)")
+        return Feedback(value)
+    if kind == "speed":
+        speed = _number(obj, "actions_per_s")
+        if not MIN_SPEED <= speed <= MAX_SPEED:
+            raise MessageError(
+                f"actions_per_s={obj['actions_per_s']!r} is invalid: must be in {MIN_SPEED:g}..{MAX_SPEED:g}"
+            )
+        return Speed(speed)
+    if kind == "pause":
+        return Pause(_flag(obj, "paused"))
+    return Presence(_flag(obj, "here"))
+
+
+class RateLimiter:
+    """Token bucket: at most ``rate`` messages per second on average, bursts of ``burst``."""
+
+    def __init__(self, rate: float, burst: int) -> None:
+        if not rate > 0 or burst < 1:
+            raise ValueError(f"RateLimiter needs rate > 0 and burst >= 1, got {rate!r} and {burst!r}")
+        self.rate = float(rate)
+        self.burst = float(burst)
+        self.tokens = float(burst)
+        self.last: float | None = None
+
+    def allow(self, now: float) -> bool:
+        """Take one token at time ``now`` (seconds); False if none is left."""
+        if self.last is not None:
+            self.tokens = min(self.burst, self.tokens + (now - self.last) * self.rate)
+        self.last = now
+        if self.tokens >= 1.0:
+            self.tokens -= 1.0
+            return True
+        return False

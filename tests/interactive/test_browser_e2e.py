@@ -1,0 +1,102 @@
+"""End to end in a real headless Chromium: train.py trainer=interactive, a page, keys pressed, events learned.
+
+Needs Debian's chromium (``/usr/bin/chromium``, installed by ``.ci/run``) and the ``playwright`` package
+(which drives it; no browser download). Skipped, saying why, where either is missing.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from hfrl_torch.common.checkpoint import load_checkpoint
+from hfrl_torch.feedback.log import load_feedback_log
+
+ROOT = Path(__file__).resolve().parents[2]
+CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+playwright = pytest.importorskip("playwright.sync_api", reason="the playwright package is not installed")
+pytestmark = pytest.mark.skipif(not Path(CHROMIUM).exists(), reason="Debian's chromium is not installed")
+ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
+
+
+def _url(proc: subprocess.Popen, timeout: float = 120) -> str:
+    deadline = time.time() + timeout
+    assert proc.stderr is not None
+    while time.time() < deadline:
+        line = proc.stderr.readline()
+        if "Teach the agent in your browser:" in line:
+            return line.split("browser:", 1)[1].strip()
+        if not line and proc.poll() is not None:
+            break
+    raise AssertionError("train.py did not print the page's URL")
+
+
+def test_person_presses_keys_and_the_learner_gets_them(tmp_path):
+    run_dir = tmp_path / "live"
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            str(ROOT / "train.py"),
+            "trainer=interactive",
+            "trainer.port=0",
+            "trainer.actions_per_s=4",
+            "agent.iterations=3",
+            "agent.population=10",
+            "agent.games_per_candidate=1",
+            "agent.eval_games=3",
+            "agent.watch_pieces=60",
+            "logger.backend=none",
+            f"hydra.run.dir={run_dir}",
+        ],
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        url = _url(proc)
+        with playwright.sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+            page = browser.new_page()
+            page.goto(url)
+            page.wait_for_function("document.getElementById('score').textContent !== '-'", timeout=60_000)
+            for key in ["/", "/", "z"]:
+                page.keyboard.press(key)
+                page.wait_for_timeout(300)
+            page.click("#good")
+            page.wait_for_timeout(300)
+            assert page.inner_text("#given") == "4"
+            (tmp_path / "page.png").write_bytes(page.screenshot())
+            browser.close()  # the person leaves: training goes on from the game alone
+        assert proc.wait(timeout=240) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+
+    events = load_feedback_log(run_dir / "feedback.jsonl")
+    assert [e.value for e in events] == [1.0, 1.0, -1.0, 1.0]
+    assert {e.source for e in events} == {"human:browser"}
+    # credit: each event names the placement on screen when it was given, in the game being watched
+    assert all(e.episode == 0 and 0 <= e.step < 60 for e in events)
+    assert [e.step for e in events] == sorted(e.step for e in events)
+    rows = [json.loads(x) for x in (run_dir / "metrics.jsonl").read_text().splitlines()]
+    assert rows[0]["feedback/given"] == 4 and rows[0]["feedback/learned_total"] == 4
+    assert [r["feedback/trainer_present"] for r in rows[1:]] == [0.0, 0.0]  # page closed: no teacher
+    state = load_checkpoint(run_dir)["state"]
+    assert torch.count_nonzero(torch.as_tensor(state["human_weights"])) > 0  # H^ learned from the person
