@@ -148,6 +148,12 @@ def format_summary(r: dict[str, object]) -> str:
 
 def evaluate(cfg: DictConfig) -> dict[str, object]:
     """Evaluate and print the summary, then one JSON line on stdout."""
+    if cfg.get("runs") is not None:
+        from hfrl_torch.experiment.aggregate import aggregate
+
+        result = aggregate(cfg)
+        print(json.dumps(result), flush=True)
+        return result
     domain = require_choice(cfg, "domain.name", ("tetris", "keepaway"))
     if domain == "tetris":
         result = evaluate_tetris(cfg)

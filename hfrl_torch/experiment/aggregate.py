@@ -1,0 +1,350 @@
+"""Aggregate finished runs into one report: ``python evaluate.py runs=<multirun dir>`` (or a list of dirs).
+
+Every run directory below the given ones (``config.yaml`` + ``metrics.jsonl``) is read; runs are grouped by
+the values that differ between them other than the seed (a Hydra sweep's swept values), and each group gets
+its learning curve (mean and 95 % band over seeds), its final value (mean and 95 % interval) and, against
+the reference group (the first, or ``baseline=``), the difference with a permutation-test p-value: exact
+sign flips over seeds when both groups have the same seeds (paired), random relabelling otherwise. Runs
+without metrics (crashed, or killed before their first iteration) are listed and left out.
+
+Writes ``summary.csv``, ``summary.md`` and ``curves.png`` into ``out`` (default: the first directory), and
+the plot to TensorBoard as an image.
+"""
+
+from __future__ import annotations
+
+import csv
+import itertools
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from hfrl_torch.common.errors import ConfigError
+from hfrl_torch.common.stats import summarize
+
+# (x key, y key) of each learner's metrics.jsonl, in the order they are tried
+CURVES = (
+    ("iteration", "eval/mean_policy_lines_mean"),  # CE, CE + feedback
+    ("game", "eval/lines_per_game_mean"),  # TAMER and the other per-game Tetris learners
+    ("episode", "eval/episode_seconds_mean"),  # keepaway learners
+)
+IGNORED = {"seed", "resume", "hydra", "logger", "threads", "device"}
+
+
+@dataclass
+class Run:
+    """One finished (or crashed) run."""
+
+    path: Path
+    config: dict
+    rows: list[dict] = field(default_factory=list)
+
+
+@dataclass
+class Group:
+    """The runs that share every setting but the seed."""
+
+    label: str
+    runs: list[Run]
+    x_key: str = ""
+    y_key: str = ""
+
+    @property
+    def seeds(self) -> list[int]:
+        return [int(r.config.get("seed", i)) for i, r in enumerate(self.runs)]
+
+    def finals(self) -> dict[int, float]:
+        return {s: float(r.rows[-1][self.y_key]) for s, r in zip(self.seeds, self.runs, strict=True)}
+
+    def reach(self, level: float) -> dict[int, float]:
+        """Per seed, the first x at which the curve reaches ``level`` (the last x + 1 if it never does)."""
+        out = {}
+        for s, r in zip(self.seeds, self.runs, strict=True):
+            hit = [row[self.x_key] for row in r.rows if row[self.y_key] >= level]
+            out[s] = float(hit[0]) if hit else float(r.rows[-1][self.x_key]) + 1
+        return out
+
+
+def _flat(d: dict, prefix: str = "") -> dict[str, object]:
+    out: dict[str, object] = {}
+    for k, v in d.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, dict):
+            out.update(_flat(v, key + "."))
+        else:
+            out[key] = v
+    return out
+
+
+def find_runs(dirs: list[Path]) -> tuple[list[Run], list[Path]]:
+    """Every run below ``dirs`` and the runs without metrics."""
+    runs, broken = [], []
+    for d in dirs:
+        if not d.is_dir():
+            raise ConfigError(f"runs={str(d)!r} is not a directory; give run or multirun directories")
+        for cfg_file in sorted(d.glob("**/config.yaml")):
+            if cfg_file.parent.name in (".hydra", "resume-logs"):
+                continue
+            run_dir = cfg_file.parent
+            metrics = run_dir / "metrics.jsonl"
+            rows = []
+            if metrics.exists():
+                for line in metrics.read_text().splitlines():
+                    try:
+                        rows.append(json.loads(line))
+                    except json.JSONDecodeError:
+                        break  # a run killed mid-write: keep the lines before
+            config = OmegaConf.to_container(OmegaConf.load(cfg_file), resolve=False)
+            assert isinstance(config, dict)
+            if rows:
+                runs.append(Run(run_dir, config, rows))
+            else:
+                broken.append(run_dir)
+    return runs, broken
+
+
+def group_runs(runs: list[Run]) -> list[Group]:
+    """Groups of runs differing only in the ignored keys (seed, logging...), labelled by what differs."""
+    flats = [_flat(r.config) for r in runs]
+    keys = sorted(set().union(*flats)) if flats else []
+
+    def distinct(k: str, members: list[dict[str, object]]) -> int:
+        return len({json.dumps(f.get(k), default=str) for f in members})
+
+    varying = []
+    for k in keys:
+        group, _, rest = k.partition(".")
+        if group in IGNORED or distinct(k, flats) < 2:
+            continue
+        if rest and rest != "name" and f"{group}.name" in keys:
+            # a setting of a config group counts only where it differs between runs of the same option
+            by_option: dict[str, list[dict[str, object]]] = {}
+            for f in flats:
+                by_option.setdefault(str(f.get(f"{group}.name")), []).append(f)
+            if all(distinct(k, m) < 2 for m in by_option.values()):
+                continue
+        varying.append(k)
+    groups: dict[str, list[Run]] = {}
+    for run, flat in zip(runs, flats, strict=True):
+        label = ", ".join(f"{k}={flat.get(k)}" for k in varying) or "all runs"
+        groups.setdefault(label, []).append(run)
+    out = []
+    for label, members in groups.items():
+        g = Group(label, members)
+        for x, y in CURVES:
+            if all(y in r.rows[-1] and x in r.rows[-1] for r in members):
+                g.x_key, g.y_key = x, y
+                break
+        out.append(g)
+    return out
+
+
+def permutation_p(a: list[float], b: list[float], paired: bool, draws: int = 20_000, seed: int = 0) -> float:
+    """Two-sided p-value of mean(a) - mean(b) under relabelling (sign flips when ``paired``)."""
+    if paired:
+        d = torch.tensor(a, dtype=torch.float64) - torch.tensor(b, dtype=torch.float64)
+        observed = abs(float(d.mean()))
+        n = d.numel()
+        if n <= 16:
+            signs = torch.tensor(list(itertools.product((1.0, -1.0), repeat=n)), dtype=torch.float64)
+        else:
+            g = torch.Generator().manual_seed(seed)
+            signs = torch.randint(0, 2, (draws, n), generator=g).to(torch.float64) * 2 - 1
+        stats = (signs * d).mean(1).abs()
+        return float((stats >= observed - 1e-12).double().mean())
+    x = torch.tensor(a + b, dtype=torch.float64)
+    observed = abs(sum(a) / len(a) - sum(b) / len(b))
+    g = torch.Generator().manual_seed(seed)
+    perms = torch.argsort(torch.rand(draws, x.numel(), generator=g), dim=1)
+    xa = x[perms[:, : len(a)]].mean(1)
+    xb = x[perms[:, len(a) :]].mean(1)
+    return float((((xa - xb).abs() >= observed - 1e-12).double().sum() + 1) / (draws + 1))
+
+
+def _ci(values: list[float]) -> dict[str, float]:
+    return summarize(torch.tensor(values, dtype=torch.float64))
+
+
+def _curve(group: Group) -> tuple[list[float], list[float], list[float], list[float]]:
+    """x, mean, band low, band high over the runs' common iterations."""
+    n = min(len(r.rows) for r in group.runs)
+    xs, mean, low, high = [], [], [], []
+    for i in range(n):
+        s = _ci([float(r.rows[i][group.y_key]) for r in group.runs])
+        xs.append(float(group.runs[0].rows[i][group.x_key]))
+        mean.append(s["mean"])
+        low.append(s["ci95_low"])
+        high.append(s["ci95_high"])
+    return xs, mean, low, high
+
+
+def report(
+    groups: list[Group], baseline: int = 0, reach: float | None = None
+) -> tuple[list[dict[str, object]], str]:
+    """CSV rows and the markdown report of ``groups`` against ``groups[baseline]``; with ``reach``, also
+    how long each group took to reach that level (paired differences and p-values likewise)."""
+    rows: list[dict[str, object]] = []
+    ref = groups[baseline]
+    md = [
+        "| condition | runs | metric | final mean | 95 % interval | difference to reference "
+        "| p (permutation) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for g in groups:
+        if not g.y_key:
+            md.append(f"| {g.label} | {len(g.runs)} | (no known learning curve in metrics.jsonl) | | | | |")
+            continue
+        finals = g.finals()
+        s = _ci(list(finals.values()))
+        diff, p, kind = "", "", ""
+        if g is not ref and ref.y_key == g.y_key:
+            ref_finals = ref.finals()
+            paired = sorted(finals) == sorted(ref_finals)
+            a = [finals[k] for k in sorted(finals)]
+            b = [ref_finals[k] for k in sorted(ref_finals)]
+            pv = permutation_p(a, b, paired)
+            diff = f"{s['mean'] - _ci(b)['mean']:+.2f}"
+            p = f"{pv:.3f}"
+            kind = "paired" if paired else "unpaired"
+        rows.append(
+            {
+                "condition": g.label,
+                "runs": len(g.runs),
+                "seeds": " ".join(map(str, sorted(finals))),
+                "metric": g.y_key,
+                "x": g.x_key,
+                "last_x": g.runs[0].rows[-1][g.x_key],
+                "mean": s["mean"],
+                "ci95_low": s["ci95_low"],
+                "ci95_high": s["ci95_high"],
+                "difference": diff,
+                "p_value": p,
+                "test": kind,
+            }
+        )
+        ref_mark = " (reference)" if g is ref else ""
+        md.append(
+            f"| {g.label}{ref_mark} | {len(g.runs)} | {g.y_key} at {g.x_key} {g.runs[0].rows[-1][g.x_key]} "
+            f"| {s['mean']:.2f} | {s['ci95_low']:.2f} .. {s['ci95_high']:.2f} | {diff} "
+            f"| {p}{' ' + kind if kind else ''} |"
+        )
+    if reach is not None:
+        md += ["", _reach_table(groups, ref, reach, rows)]
+    return rows, "\n".join(md)
+
+
+def _reach_table(groups: list[Group], ref: Group, level: float, rows: list[dict[str, object]]) -> str:
+    """How long each group took to reach ``level``; fills the ``reach_*`` columns of ``rows``."""
+    md = [
+        f"| condition | {ref.x_key or 'x'} to reach {level:g} (95 % interval) | never reached "
+        "| difference to reference | p (permutation) |",
+        "|---|---|---|---|---|",
+    ]
+    ref_when = ref.reach(level) if ref.y_key else {}
+    by_label = {r["condition"]: r for r in rows}
+    for g in groups:
+        if not g.y_key:
+            continue
+        when = g.reach(level)
+        last = {s: float(r.rows[-1][g.x_key]) for s, r in zip(g.seeds, g.runs, strict=True)}
+        never = sum(when[s] > last[s] for s in when)
+        s = _ci(list(when.values()))
+        diff = p = ""
+        if g is not ref and ref_when:
+            paired = sorted(when) == sorted(ref_when)
+            a = [when[k] for k in sorted(when)]
+            b = [ref_when[k] for k in sorted(ref_when)]
+            diff = f"{s['mean'] - _ci(b)['mean']:+.2f}"
+            p = f"{permutation_p(a, b, paired):.3f}"
+        row = by_label[g.label]
+        row.update(
+            {"reach_level": level, "reach_mean": s["mean"], "reach_never": never, "reach_difference": diff}
+        )
+        row["reach_p_value"] = p
+        md.append(
+            f"| {g.label} | {s['mean']:.2f} ({s['ci95_low']:.2f} .. {s['ci95_high']:.2f}) | {never} "
+            f"| {diff} | {p} |"
+        )
+    return "\n".join(md)
+
+
+def plot(groups: list[Group], path: Path) -> None:
+    """Learning curves, mean and 95 % band over seeds, one line per group (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.2), dpi=110)
+    for g in groups:
+        if not g.y_key:
+            continue
+        xs, mean, low, high = _curve(g)
+        ax.plot(xs, mean, label=f"{g.label} (n={len(g.runs)})")
+        ax.fill_between(xs, low, high, alpha=0.2)
+    ys = {g.y_key for g in groups if g.y_key}
+    xk = {g.x_key for g in groups if g.x_key}
+    ax.set_xlabel(", ".join(sorted(xk)) or "x")
+    ax.set_ylabel(", ".join(sorted(ys)) or "y")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def aggregate(cfg: DictConfig) -> dict[str, object]:
+    """``evaluate.py runs=...``: read, group, compare, write CSV, markdown, plot; print the markdown."""
+    raw = cfg.runs
+    dirs = [Path(str(d)) for d in (raw if OmegaConf.is_list(raw) else [raw])]
+    runs, broken = find_runs(dirs)
+    if not runs:
+        raise ConfigError(f"runs={[str(d) for d in dirs]} holds no run with metrics.jsonl")
+    groups = group_runs(runs)
+    labels = [g.label for g in groups]
+    base = cfg.get("baseline")
+    if base is None:
+        baseline = 0
+    elif str(base) in labels:
+        baseline = labels.index(str(base))
+    else:
+        raise ConfigError(f"baseline={base!r} is not a condition here; allowed: {', '.join(labels)}")
+    reach = cfg.get("reach")
+    if reach is not None and (isinstance(reach, bool) or not isinstance(reach, (int, float))):
+        raise ConfigError(f"reach={reach!r} is invalid: must be a number (the level to time)")
+    rows, md = report(groups, baseline, None if reach is None else float(reach))
+    if broken:
+        md += "\n\nRuns without metrics (crashed or killed before their first iteration), left out:\n"
+        md += "\n".join(f"- {b}" for b in broken)
+    out = Path(str(cfg.out)) if cfg.get("out") else dirs[0]
+    out.mkdir(parents=True, exist_ok=True)
+    with (out / "summary.csv").open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]) if rows else ["condition"])
+        writer.writeheader()
+        writer.writerows(rows)
+    (out / "summary.md").write_text(md + "\n")
+    plot(groups, out / "curves.png")
+    _to_tensorboard(out)
+    print(md)
+    return {
+        "runs": len(runs),
+        "missing": len(broken),
+        "conditions": len(groups),
+        "summary_csv": str(out / "summary.csv"),
+        "summary_md": str(out / "summary.md"),
+        "plot": str(out / "curves.png"),
+    }
+
+
+def _to_tensorboard(out: Path) -> None:
+    import numpy as np
+    from PIL import Image
+    from torch.utils.tensorboard import SummaryWriter
+
+    image = torch.from_numpy(np.array(Image.open(out / "curves.png").convert("RGB")))
+    with SummaryWriter(str(out / "tensorboard")) as w:
+        w.add_image("aggregate/curves", image, 0, dataformats="HWC")
+        w.add_text("aggregate/summary", (out / "summary.md").read_text(), 0)

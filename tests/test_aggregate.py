@@ -1,0 +1,98 @@
+"""evaluate.py runs=...: grouping by what differs, intervals, permutation tests, files, crashed runs."""
+
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from hfrl_torch.experiment.aggregate import find_runs, group_runs, permutation_p, report
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _run(root: Path, name: str, config: str, curve: list[float]) -> None:
+    run = root / name
+    run.mkdir(parents=True)
+    (run / "config.yaml").write_text(config)
+    rows = [json.dumps({"iteration": i, "eval/mean_policy_lines_mean": y}) for i, y in enumerate(curve, 1)]
+    (run / "metrics.jsonl").write_text("\n".join(rows) + "\n")
+
+
+def _sweep(root: Path) -> None:
+    for seed, (a, b) in enumerate([(10, 30), (20, 50), (30, 40), (40, 80)]):
+        base = f"seed: {seed}\nthreads: 1\nagent:\n  name: cem\n  population: 100\n"
+        _run(root, f"{seed}", base + "fusion:\n  name: none\n", [1, a])
+        _run(root, f"{seed + 10}", base + "fusion:\n  name: linear\n  weight: trust\n", [2, b])
+    crashed = root / "99"
+    crashed.mkdir()
+    (crashed / "config.yaml").write_text("seed: 99\nfusion:\n  name: linear\n")
+
+
+def test_groups_by_what_differs_and_compares_paired(tmp_path):
+    _sweep(tmp_path)
+    runs, broken = find_runs([tmp_path])
+    assert len(runs) == 8 and broken == [tmp_path / "99"]
+    groups = group_runs(runs)
+    assert [g.label for g in groups] == ["fusion.name=none", "fusion.name=linear"]  # not the seed
+    rows, md = report(groups)
+    assert rows[0]["mean"] == 25.0 and rows[1]["mean"] == 50.0
+    assert rows[1]["difference"] == "+25.00" and rows[1]["test"] == "paired"
+    # 4 pairs, all differences positive: 2 of the 16 sign flips are as extreme -> p = 0.125
+    assert rows[1]["p_value"] == "0.125"
+    assert "(reference)" in md
+
+
+def test_permutation_p_values():
+    assert permutation_p([1.0, 2.0, 3.0], [1.0, 2.0, 3.0], paired=True) == 1.0
+    assert permutation_p([10.0] * 6, [0.0] * 6, paired=True) == pytest.approx(2 / 64)
+    assert permutation_p([10.0, 11.0, 12.0, 13.0], [0.0, 1.0, 2.0, 3.0], paired=False) < 0.05
+
+
+def test_evaluate_runs_writes_csv_markdown_plot_and_reports_crashed_runs(tmp_path):
+    _sweep(tmp_path / "sweep")
+    out = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "evaluate.py"),
+            f"runs={tmp_path / 'sweep'}",
+            f"out={tmp_path / 'report'}",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    report_dir = tmp_path / "report"
+    rows = list(csv.DictReader((report_dir / "summary.csv").open()))
+    assert [r["condition"] for r in rows] == ["fusion.name=none", "fusion.name=linear"]
+    assert (report_dir / "curves.png").stat().st_size > 1000
+    assert list((report_dir / "tensorboard").glob("events.out.tfevents.*"))
+    assert "left out" in (report_dir / "summary.md").read_text() and "99" in out.stdout
+    assert json.loads(out.stdout.strip().splitlines()[-1])["missing"] == 1
+
+
+def test_unknown_baseline_fails_with_one_line(tmp_path):
+    _sweep(tmp_path)
+    out = subprocess.run(
+        [sys.executable, str(ROOT / "evaluate.py"), f"runs={tmp_path}", "baseline=nothing"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert out.returncode == 2 and "baseline='nothing' is not a condition here" in out.stderr
+
+
+def test_reach_times_each_condition_and_counts_never(tmp_path):
+    _sweep(tmp_path)
+    groups = group_runs(find_runs([tmp_path])[0])
+    rows, md = report(groups, reach=35)
+    # none ends at 10, 20, 30, 40: only seed 3 reaches 35 (at 2); the others count as last + 1 = 3
+    assert rows[0]["reach_never"] == 3 and rows[0]["reach_mean"] == pytest.approx((3 + 3 + 3 + 2) / 4)
+    assert rows[1]["reach_never"] == 1 and "to reach 35" in md
