@@ -14,8 +14,8 @@ from hfrl_torch.experiment.train import train
 
 @hydra.main(version_base=None, config_path="conf", config_name="train")
 @guarded
-def main(cfg: DictConfig) -> None:
-    train(cfg)
+def main(cfg: DictConfig) -> float | None:
+    return train(cfg).score  # the objective of a sweeper such as Optuna
 
 
 if __name__ == "__main__":

@@ -5,6 +5,7 @@ from __future__ import annotations
 import signal
 import sys
 from pathlib import Path
+from typing import NamedTuple
 
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
@@ -77,8 +78,18 @@ def _interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
 
-def train(cfg: DictConfig) -> Path:
-    """Train the configured agent; returns the run directory."""
+class TrainResult(NamedTuple):
+    """Where a run lives and its final score (lines per game of the last evaluation; None if none)."""
+
+    run_dir: Path
+    score: float | None
+
+
+SCORES = ("eval/mean_policy_lines_mean", "eval/lines_per_game_mean")
+
+
+def train(cfg: DictConfig) -> TrainResult:
+    """Train the configured agent; returns the run directory and its final score (a sweeper's objective)."""
     checkpoint = None
     if cfg.resume:
         run_dir = Path(cfg.resume)
@@ -141,4 +152,5 @@ def train(cfg: DictConfig) -> Path:
     print("\n".join(lines), file=sys.stderr)
     if interrupted:
         sys.exit(130)
-    return run_dir
+    score = next((float(final[k]) for k in SCORES if k in final), None) if final else None
+    return TrainResult(run_dir, score)

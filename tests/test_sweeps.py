@@ -1,0 +1,96 @@
+"""Sweeps: joblib (local parallel) and submitit (its local executor) launchers, an experiment config, and
+evaluate.py aggregating what they produce."""
+
+from __future__ import annotations
+
+import csv
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+TINY = [
+    "domain.width=6",
+    "domain.height=8",
+    "agent.population=10",
+    "agent.games_per_candidate=1",
+    "agent.eval_games=2",
+    "agent.iterations=2",
+    "logger.backend=none",
+]
+
+
+def _run(script: str, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, str(ROOT / script), *args], cwd=ROOT, capture_output=True, text=True, timeout=600
+    )
+
+
+def test_joblib_multirun_is_aggregated_into_the_expected_table(tmp_path):
+    pytest.importorskip("hydra_plugins.hydra_joblib_launcher", reason="the sweep extra is not installed")
+    sweep = tmp_path / "sweep"
+    out = _run(
+        "train.py",
+        "-m",
+        "hydra/launcher=joblib",
+        "hydra.launcher.n_jobs=2",
+        "fusion=none,linear",
+        "trainer=oracle",
+        "seed=0,1",
+        *TINY,
+        f"hydra.sweep.dir={sweep}",
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert sorted(p.name for p in sweep.iterdir() if p.is_dir()) == ["0", "1", "2", "3"]
+    (sweep / "3" / "metrics.jsonl").unlink()  # a member that crashed before its first iteration
+    agg = _run("evaluate.py", f"runs={sweep}", f"out={tmp_path / 'report'}")
+    assert agg.returncode == 0, agg.stderr[-3000:]
+    rows = list(csv.DictReader((tmp_path / "report" / "summary.csv").open()))
+    assert [(r["condition"], r["runs"], r["seeds"]) for r in rows] == [
+        ("fusion.name=none", "2", "0 1"),
+        ("fusion.name=linear", "1", "0"),
+    ]
+    assert rows[1]["test"] == "unpaired"
+    assert "left out" in agg.stdout and str(sweep / "3") in agg.stdout
+
+
+def test_submitit_launcher_runs_with_its_local_executor(tmp_path):
+    pytest.importorskip("hydra_plugins.hydra_submitit_launcher", reason="the sweep extra is not installed")
+    sweep = tmp_path / "sweep"
+    out = _run(
+        "train.py",
+        "-m",
+        "hydra/launcher=submitit_local",
+        "hydra.launcher.timeout_min=5",
+        "seed=0,1",
+        *TINY,
+        f"hydra.sweep.dir={sweep}",
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    for job in ("0", "1"):
+        assert len((sweep / job / "metrics.jsonl").read_text().splitlines()) == 2
+
+
+def test_thesis_experiment_config_composes_and_runs_one_tiny_iteration(tmp_path):
+    sweep = tmp_path / "fig"
+    out = _run("train.py", "-m", "+experiment=fig4_1", "seed=0", *TINY, f"hydra.sweep.dir={sweep}")
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert out.stderr.count("Done: mean policy") == 3  # fusion none, linear, annealed
+
+
+def test_optuna_sweeper_searches_the_fusion_weight(tmp_path):
+    pytest.importorskip("hydra_plugins.hydra_optuna_sweeper", reason="the sweep extra is not installed")
+    out = _run(
+        "train.py",
+        "-m",
+        "hydra/sweeper=fusion_weight",
+        "hydra.sweeper.n_trials=2",
+        "fusion=linear",
+        "trainer=oracle",
+        *TINY,
+        f"hydra.sweep.dir={tmp_path / 'opt'}",
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert "Best parameters: {'fusion.weight':" in out.stdout + out.stderr
