@@ -84,7 +84,7 @@ def test_unknown_group_option_names_the_allowed_ones(capsys):
     with pytest.raises(SystemExit) as info:
         check_group_choices(["agent=nosuch"])
     assert info.value.code == 2
-    assert capsys.readouterr().err.strip() == "error: unknown agent 'nosuch'; allowed: cem, tamer"
+    assert capsys.readouterr().err.strip() == "error: unknown agent 'nosuch'; allowed: cem, sarsa, tamer"
     check_group_choices(["domain=tetris", "domain.width=8", "-m"])  # valid ones pass
 
 
@@ -97,9 +97,10 @@ def test_evaluate_rejects_bad_values_and_plays_random():
     assert res["mean"] < 1.0 and res["games"] == 20 and res["policy"] == "random"
 
 
-def test_keepaway_cannot_be_trained_yet_but_says_how_to_evaluate():
-    with pytest.raises(ConfigError, match=r"python evaluate\.py domain=keepaway policy=hand"):
+def test_keepaway_is_learned_by_sarsa_only():
+    with pytest.raises(ConfigError, match=r"domain=keepaway agent=sarsa"):
         validate_train_config(_cfg("train", "domain=keepaway"))
+    validate_train_config(_cfg("train", "domain=keepaway", "agent=sarsa"))
 
 
 @pytest.mark.parametrize(

@@ -24,8 +24,8 @@ from hfrl_torch.feedback.credit import CreditModel, GammaDelay, PreviousStep, Un
 from hfrl_torch.feedback.log import FeedbackLog
 from hfrl_torch.fusion.schedules import AnnealedWeight, ConstantWeight, TrustWeight, WeightSchedule
 
-DOMAINS = ("tetris",)
-AGENTS = ("cem", "tamer")
+DOMAINS = ("tetris", "keepaway")
+AGENTS = ("cem", "tamer", "sarsa")
 FUSIONS = (
     "none",
     "human_only",
@@ -62,7 +62,7 @@ def set_threads(cfg: DictConfig) -> int:
 
 def make_rules(cfg: DictConfig) -> TetrisRules:
     """Tetris rules from ``domain``."""
-    require_choice(cfg, "domain.name", DOMAINS)
+    require_choice(cfg, "domain.name", ("tetris",))
     return TetrisRules(
         width=require_int(cfg, "domain.width", 4, 30),
         height=require_int(cfg, "domain.height", 4, 1000),
@@ -270,12 +270,24 @@ def make_run_logger(cfg: DictConfig, log_dir: str, purge_step: int | None) -> Lo
 
 def validate_train_config(cfg: DictConfig) -> None:
     """Check every section ``train.py`` uses, before any work or output."""
-    if cfg.domain.name != "tetris":
-        raise ConfigError(
-            f"domain={cfg.domain.name!r} has no learning agent yet; trainable: tetris "
-            f"(evaluate its benchmark policies: python evaluate.py domain={cfg.domain.name} policy=hand)"
-        )
+    domain = require_choice(cfg, "domain.name", DOMAINS)
     check_run(cfg)
+    if domain == "keepaway" or cfg.agent.name == "sarsa":
+        from hfrl_torch.experiment.keepaway_sarsa import check_sarsa
+
+        if domain != "keepaway" or cfg.agent.name != "sarsa":
+            raise ConfigError(
+                f"domain={domain} agent={cfg.agent.name}: keepaway is learned by agent=sarsa, "
+                "and agent=sarsa learns keepaway only (domain=keepaway agent=sarsa)"
+            )
+        if cfg.fusion.name != "none" or cfg.trainer.name != "none":
+            raise ConfigError(
+                f"fusion={cfg.fusion.name} trainer={cfg.trainer.name}: Sarsa keepers learn from the "
+                "environment alone so far; use fusion=none trainer=none"
+            )
+        require_int(cfg, "threads", 1, 256)
+        check_sarsa(cfg)
+        return
     make_rules(cfg)
     check_domain(cfg)
     require_int(cfg, "threads", 1, 256)

@@ -13,6 +13,7 @@ from omegaconf import DictConfig, OmegaConf
 from hfrl_torch.common.checkpoint import LAST, load_checkpoint
 from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.experiment.factories import set_threads, validate_train_config
+from hfrl_torch.experiment.keepaway_sarsa import train_sarsa
 from hfrl_torch.experiment.tetris_cem import train_cem
 from hfrl_torch.experiment.tetris_cem_hf import train_cem_hf
 from hfrl_torch.experiment.tetris_tamer import train_tamer
@@ -26,7 +27,8 @@ TRAINER_LABELS = {
 }
 
 
-RESUMABLE = ("agent.iterations", "threads", "device", "logger.backend")
+RESUMABLE = ("agent.iterations", "agent.hours", "agent.episodes", "threads", "device", "logger.backend")
+SAVES_AS_IT_GOES = ("cem", "sarsa")  # agents whose runs checkpoint while they train, so can resume
 
 
 def resume_config(cfg: DictConfig, run_dir: Path, checkpoint: dict, overrides: list[str]) -> DictConfig:
@@ -85,7 +87,7 @@ class TrainResult(NamedTuple):
     score: float | None
 
 
-SCORES = ("eval/mean_policy_lines_mean", "eval/lines_per_game_mean")
+SCORES = ("eval/mean_policy_lines_mean", "eval/lines_per_game_mean", "episode_s_mean")
 
 
 def train(cfg: DictConfig) -> TrainResult:
@@ -102,7 +104,7 @@ def train(cfg: DictConfig) -> TrainResult:
     domain, agent = cfg.domain.name, cfg.agent.name
     if checkpoint is not None and (checkpoint["domain"], checkpoint["agent"]) != (domain, agent):
         raise ConfigError(f"resume={str(run_dir)!r} holds a {checkpoint['domain']}/{checkpoint['agent']} run")
-    if checkpoint is not None and agent != "cem":
+    if checkpoint is not None and agent not in SAVES_AS_IT_GOES:
         raise ConfigError(f"agent={agent!r} runs are not resumable (they last seconds); start a new run")
     (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
 
@@ -111,7 +113,9 @@ def train(cfg: DictConfig) -> TrainResult:
     signal.signal(signal.SIGTERM, _interrupt)  # a scheduler's stop ends the run like Ctrl-C
     signal.signal(signal.SIGINT, _interrupt)
     try:
-        if agent == "tamer":
+        if agent == "sarsa":
+            final = train_sarsa(cfg, run_dir, checkpoint)
+        elif agent == "tamer":
             final = train_tamer(cfg, run_dir)
         elif cfg.trainer.name == "none":
             final = train_cem(cfg, run_dir, checkpoint)
@@ -125,9 +129,20 @@ def train(cfg: DictConfig) -> TrainResult:
     if interrupted and agent == "cem":
         lines.append("Interrupted. Every finished iteration is saved; continue with:")
         lines.append(f"  python train.py resume={run_dir}")
+    elif interrupted and agent == "sarsa":
+        lines.append("Interrupted. Weights and finished episodes are saved (episodes in progress restart);")
+        lines.append(f"continue with:  python train.py resume={run_dir}")
     elif interrupted:
         lines.append(f"Interrupted. agent={agent} saves its checkpoint at the end, so there is none;")
         lines.append("every feedback event given so far is in feedback.jsonl.")
+    elif final and agent == "sarsa":
+        low, high = final["episode_s_ci95_low"], final["episode_s_ci95_high"]
+        lines.append(
+            f"Done: after {final['hours']:.2f} simulated hours on each of {cfg.agent.learners} fields, "
+            f"episodes last {final['episode_s_mean']:.2f} s (95% CI {low:.2f}..{high:.2f}; last "
+            f"{cfg.agent.log_minutes:g} simulated minutes, exploring)"
+        )
+        lines.append(f"Curves:           {run_dir / 'metrics.jsonl'}")
     elif final and agent == "cem":
         low, high = final["eval/mean_policy_lines_ci95_low"], final["eval/mean_policy_lines_ci95_high"]
         mean = final["eval/mean_policy_lines_mean"]
@@ -147,7 +162,7 @@ def train(cfg: DictConfig) -> TrainResult:
         lines.append(f"Checkpoint:       {ckpt}")
     if cfg.logger.backend == "tensorboard":
         lines.append(f"TensorBoard:      {tensorboard} --logdir {run_dir / 'tensorboard'}")
-    if ckpt.exists():
+    if ckpt.exists() and agent != "sarsa":  # evaluate.py does not play keepaway checkpoints yet
         lines.append(f"Evaluate:         {python} evaluate.py policy={run_dir}")
     print("\n".join(lines), file=sys.stderr)
     if interrupted:

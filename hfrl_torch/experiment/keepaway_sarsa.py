@@ -1,0 +1,436 @@
+"""Keepaway keepers that learn by SMDP Sarsa(lambda) from the environment alone: ``train.py domain=keepaway
+agent=sarsa``.
+
+One batched ``KeepawayEnv`` holds ``agent.learners`` fields; every field is an independent team (one
+seed of the experiment) and every keeper of it an independent learner (its own tile-coded weights,
+learner index = field * keepers + keeper), learning from its own decisions only (thesis Figure 5.4):
+
+* at a keeper's first decision in an episode, RLstartEpisode;
+* at its later decisions, RLstep with reward = cycles since its own last decision (the env's
+  ``reward``, which is about the deciding keeper);
+* when the episode ends, RLendEpisode for every keeper with a pending action, with its entry of the
+  env's ``episode_end_rewards`` (cycles since its last decision).
+
+Each field's simulated clock is the sum of its finished episodes plus the current episode's cycles.
+Curves of the episode duration (simulated seconds, mean over fields with a 95 % interval) go to
+TensorBoard and ``metrics.jsonl`` against simulated time (step = simulated seconds) and, in
+``tensorboard/by_episodes``, against episodes per field. Checkpoints hold the weights and every
+finished episode; a resumed run abandons the episodes that were in progress (their learning so far
+is kept) and starts new ones.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+from tqdm import tqdm
+
+from hfrl_torch import keys
+from hfrl_torch.agents.sarsa import SarsaLambda
+from hfrl_torch.common.checkpoint import LAST, save_checkpoint
+from hfrl_torch.common.errors import ConfigError
+from hfrl_torch.common.logger import flatten_config, markdown_table
+from hfrl_torch.common.stats import summarize
+from hfrl_torch.common.validation import require_bool, require_choice, require_float, require_int
+from hfrl_torch.envs.keepaway import KeepawayConfig, KeepawayEnv
+from hfrl_torch.models.tile_coding import MAX_SIZE, TileCoding, keepaway_tile_widths
+
+CYCLES_PER_SECOND = 10
+CYCLES_PER_MINUTE = 60 * CYCLES_PER_SECOND
+CYCLES_PER_HOUR = 3600 * CYCLES_PER_SECOND
+MAX_TABLE_GIB = 16.0  # refuse configs whose weight tables alone would need more memory than this
+
+
+# ---------------------------------------------------------------------------------- agent
+
+
+def make_sarsa_keepers(
+    config: KeepawayConfig,
+    fields: int,
+    *,
+    alpha: float = 0.125,
+    epsilon: float = 0.01,
+    lambda_: float = 0.0,
+    gamma: float = 1.0,
+    tilings: int = 32,
+    size: int = 2**20,
+    min_trace: float = 0.01,
+    max_traces: int | None = None,
+    share_weights: bool = False,
+    seed: int = 0,
+    device: str | torch.device = "cpu",
+) -> SarsaLambda:
+    """Sarsa(lambda) learners for every keeper of ``fields`` fields (learner = field * keepers +
+    keeper), tile-coded with the reference's widths: one weight table of ``size`` per keeper, or per
+    field with ``share_weights`` (the keepers of a team share it, the reference's "hive mind")."""
+    n = config.keepers
+    learners = torch.arange(fields * n)
+    coder = TileCoding(
+        keepaway_tile_widths(n, config.takers),
+        num_actions=config.num_actions,
+        learners=fields if share_weights else fields * n,
+        tilings=tilings,
+        size=size,
+        device=device,
+    )
+    tables = learners // n if share_weights else learners
+    return SarsaLambda(coder, alpha, epsilon, lambda_, gamma, min_trace, max_traces, seed=seed, tables=tables)
+
+
+# -------------------------------------------------------------------------------- records
+
+
+class KeepawayRecords:
+    """Every finished episode of every field, and each field's simulated clock.
+
+    One row per episode: field, ordinal (its number within the field), clock at its end (cycles),
+    duration (cycles), HoldBall decisions, then the decisions of each keeper.
+    """
+
+    FIELD, ORDINAL, END, DURATION, HOLDS = range(5)
+
+    def __init__(self, fields: int, keepers: int) -> None:
+        self.fields, self.keepers = fields, keepers
+        self.finished_cycles = torch.zeros(fields, dtype=torch.int64)  # clock at the current episode's start
+        self.clock = torch.zeros(fields, dtype=torch.int64)
+        self.episodes = torch.zeros(fields, dtype=torch.int64)
+        self.holds = torch.zeros(fields, dtype=torch.int64)  # of the episode in progress
+        self.decisions = torch.zeros(fields, keepers, dtype=torch.int64)  # of the episode in progress
+        self._rows: list[torch.Tensor] = [torch.zeros(0, 5 + keepers, dtype=torch.int64)]
+
+    @property
+    def table(self) -> torch.Tensor:
+        """All rows [E, 5 + keepers] int64, in the order the episodes ended."""
+        if len(self._rows) > 1:
+            self._rows = [torch.cat(self._rows)]
+        return self._rows[0]
+
+    def decided(self, keeper: torch.Tensor, action: torch.Tensor) -> None:
+        """Count one decision of ``keeper`` [B] (action [B]) on every field."""
+        self.decisions[torch.arange(self.fields), keeper.cpu()] += 1
+        self.holds += (action.cpu() == 0).long()
+
+    def advance(self, episode_cycles: torch.Tensor) -> None:
+        """Set the clocks from the cycles [B] of the episodes in progress."""
+        self.clock = self.finished_cycles + episode_cycles.cpu()
+
+    def finish(self, ended: torch.Tensor, durations: torch.Tensor) -> None:
+        """Record the episodes that ended on fields ``ended`` [B] with ``durations`` [B] cycles."""
+        rows = ended.cpu().nonzero().squeeze(-1)
+        duration = durations.cpu()[rows]
+        end = self.finished_cycles[rows] + duration
+        row = torch.cat(
+            (
+                torch.stack((rows, self.episodes[rows], end, duration, self.holds[rows]), 1),
+                self.decisions[rows],
+            ),
+            1,
+        )
+        self._rows.append(row)
+        self.finished_cycles[rows] = end
+        self.clock[rows] = end
+        self.episodes[rows] += 1
+        self.holds[rows] = 0
+        self.decisions[rows] = 0
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        """Tensors that restore the records (the episodes in progress are not kept)."""
+        return {"rows": self.table.clone(), "clock": self.clock.clone(), "episodes": self.episodes.clone()}
+
+    def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
+        """Continue after the saved records, with fresh episodes starting at the saved clocks."""
+        self._rows = [state["rows"].clone()]
+        self.clock = state["clock"].clone()
+        self.finished_cycles = state["clock"].clone()
+        self.episodes = state["episodes"].clone()
+        self.holds.zero_()
+        self.decisions.zero_()
+
+    def summary(self, rows: torch.Tensor) -> dict[str, float]:
+        """Episode duration over fields (each field's mean in seconds, then mean and 95 % interval),
+        HoldBall share and decisions per episode of each keeper, for the episodes ``rows``."""
+        table = rows.double()
+        per_field = [
+            table[table[:, self.FIELD] == f, self.DURATION].mean() / CYCLES_PER_SECOND
+            for f in range(self.fields)
+            if bool((table[:, self.FIELD] == f).any())
+        ]
+        s = summarize(torch.stack(per_field), floor=0.0)
+        decisions = table[:, 5:]
+        out = {
+            "episode_s_mean": s["mean"],
+            "episode_s_ci95_low": s["ci95_low"],
+            "episode_s_ci95_high": s["ci95_high"],
+            "episode_s_median_of_fields": s["median"],
+            "fields": float(s["n"]),
+            "episodes": float(table.shape[0]),
+            "hold_share": float(table[:, self.HOLDS].sum() / decisions.sum().clamp(min=1)),
+        }
+        for k in range(self.keepers):
+            out[f"decisions_per_episode_keeper{k}"] = float(decisions[:, k].mean())
+        return out
+
+    def time_window(self, start: int, stop: int) -> dict[str, float] | None:
+        """Summary of the episodes that ended in clock [start, stop) cycles (None if none did)."""
+        t = self.table
+        rows = t[(t[:, self.END] >= start) & (t[:, self.END] < stop)]
+        return self.summary(rows) if rows.shape[0] else None
+
+    def episode_window(self, start: int, stop: int) -> dict[str, float]:
+        """Summary of every field's episodes number start..stop-1."""
+        t = self.table
+        return self.summary(t[(t[:, self.ORDINAL] >= start) & (t[:, self.ORDINAL] < stop)])
+
+
+# ---------------------------------------------------------------------------------- loop
+
+
+def run_sarsa_keepers(
+    env: KeepawayEnv,
+    agent: SarsaLambda,
+    records: KeepawayRecords,
+    *,
+    cycles: int = 0,
+    episodes: int = 0,
+    on_step: Callable[[KeepawayRecords], None] | None = None,
+) -> KeepawayRecords:
+    """Play and learn until every field's clock reaches ``cycles`` or every field has finished
+    ``episodes`` episodes (0 = no such limit), calling ``on_step`` after each env step."""
+    if cycles <= 0 and episodes <= 0:
+        raise ValueError("run_sarsa_keepers needs a budget: cycles > 0 or episodes > 0")
+    fields, n = env.batch_size[0], env.config.keepers
+    field_index = torch.arange(fields, device=env.device)
+    td = env.reset()
+    reward = torch.zeros(fields, device=env.device)  # of the step that led to each decision
+    records.advance(td[keys.EPISODE_CYCLES])
+
+    def budget_left() -> bool:
+        by_time = cycles > 0 and bool((records.clock < cycles).any())
+        by_episodes = episodes > 0 and bool((records.episodes < episodes).any())
+        return (cycles <= 0 or by_time) and (episodes <= 0 or by_episodes)
+
+    while budget_left():
+        keeper = td[keys.KEEPER]
+        learners = field_index * n + keeper
+        action = agent.decide(learners, td[keys.OBSERVATION], td[keys.ACTION_MASK], reward)
+        records.decided(keeper, action)
+        td[keys.ACTION] = action
+        td, td_next = env.step_and_maybe_reset(td)
+        after = td["next"]
+        ended = after[keys.DONE].view(-1)
+        reward = torch.where(ended, 0.0, after[keys.REWARD].view(-1))  # a restarted field's keeper starts
+        if bool(ended.any()):
+            rows = ended.nonzero().squeeze(-1)
+            every_keeper = (rows.unsqueeze(1) * n + torch.arange(n, device=env.device)).reshape(-1)
+            agent.end_episode(every_keeper, after[keys.EPISODE_END_REWARDS][rows].reshape(-1))
+            records.finish(ended, after[keys.EPISODE_CYCLES])
+        td = td_next
+        records.advance(td[keys.EPISODE_CYCLES])
+        if on_step is not None:
+            on_step(records)
+    return records
+
+
+# --------------------------------------------------------------------------------- config
+
+
+def check_sarsa(cfg: DictConfig) -> None:
+    """Check ``agent`` for Sarsa keepers (and that the domain is keepaway with >= 3v2)."""
+    require_choice(cfg, "domain.name", ("keepaway",))
+    require_choice(cfg, "agent.name", ("sarsa",))
+    learners = require_int(cfg, "agent.learners", 1, 100_000)
+    hours = require_float(cfg, "agent.hours", 0.0, 10_000.0)
+    episodes = require_int(cfg, "agent.episodes", 0)
+    if hours == 0 and episodes == 0:
+        raise ConfigError("agent.hours=0 and agent.episodes=0 leave no budget; set one of them > 0")
+    require_float(cfg, "agent.alpha", 1e-12)
+    require_float(cfg, "agent.epsilon", 0.0, 1.0)
+    require_float(cfg, "agent.lambda", 0.0, 1.0)
+    require_float(cfg, "agent.gamma", 1e-9, 1.0)
+    tilings = require_int(cfg, "agent.tilings", 1, 1024)
+    bits = require_int(cfg, "agent.table_bits", 1, int(math.log2(MAX_SIZE)))
+    require_float(cfg, "agent.min_trace", 1e-12, 1.0)
+    share = require_bool(cfg, "agent.share_weights")
+    keepers = require_int(cfg, "domain.keepers", 3, 11)
+    takers = require_int(cfg, "domain.takers", 2, 11)
+    active = tilings * (4 * keepers + 2 * takers - 3)
+    if OmegaConf.select(cfg, "agent.max_traces") is not None:
+        require_int(cfg, "agent.max_traces", active, 10_000_000)
+    require_float(cfg, "agent.log_minutes", 0.02)  # >= 12 cycles: one TensorBoard step per second
+    require_int(cfg, "agent.log_episodes", 1)
+    require_float(cfg, "agent.checkpoint_minutes", 0.01)
+    tables = learners if share else learners * keepers
+    gib = tables * 2**bits * 4 / 2**30
+    if gib > MAX_TABLE_GIB:
+        raise ConfigError(
+            f"agent.learners={learners} fields need {tables} tables of 2^{bits} weights, {gib:.1f} GiB "
+            f"(limit {MAX_TABLE_GIB:.0f}); lower agent.learners or agent.table_bits"
+        )
+
+
+def _agent_from_config(cfg: DictConfig, config: KeepawayConfig, device: torch.device) -> SarsaLambda:
+    a = cfg.agent
+    return make_sarsa_keepers(
+        config,
+        a.learners,
+        alpha=a.alpha,
+        epsilon=a.epsilon,
+        lambda_=a["lambda"],
+        gamma=a.gamma,
+        tilings=a.tilings,
+        size=2**a.table_bits,
+        min_trace=a.min_trace,
+        max_traces=a.max_traces,
+        share_weights=a.share_weights,
+        seed=int(cfg.seed),
+        device=device,
+    )
+
+
+# ---------------------------------------------------------------------------------- train
+
+
+def train_sarsa(cfg: DictConfig, run_dir: Path, checkpoint: dict[str, Any] | None = None) -> dict[str, float]:
+    """``train.py domain=keepaway agent=sarsa``: train, log the curves, checkpoint; returns the last
+    point of the curve against simulated time."""
+    from hfrl_torch.experiment.evaluate import keepaway_config
+    from hfrl_torch.experiment.factories import make_device, make_run_logger
+
+    check_sarsa(cfg)
+    a = cfg.agent
+    config = keepaway_config(cfg)
+    device = make_device(cfg)
+    agent = _agent_from_config(cfg, config, device)
+    records = KeepawayRecords(a.learners, config.keepers)
+    history: list[dict[str, float]] = []
+    resumes = time_windows = episode_windows = 0  # windows: points of the two curves closed so far
+    if checkpoint is not None:
+        state = checkpoint["state"]
+        agent.load_state_dict(state["agent"])
+        agent.forget_episodes()
+        records.load_state_dict(state["records"])
+        history = list(checkpoint["history"])
+        resumes = int(state["resumes"]) + 1
+        time_windows, episode_windows = int(state["time_windows"]), int(state["episode_windows"])
+    env = KeepawayEnv(a.learners, config, device=device, seed=int(cfg.seed) + 1_000_003 * resumes)
+
+    window = max(1, round(a.log_minutes * CYCLES_PER_MINUTE))
+    every = max(1, round(a.checkpoint_minutes * CYCLES_PER_MINUTE))
+    saved_at = int(records.clock.min())
+    logger = make_run_logger(
+        cfg, str(run_dir / "tensorboard"), purge_step=_seconds(time_windows * window) + 1 if resumes else None
+    )
+    episode_logger = make_run_logger(
+        cfg,
+        str(run_dir / "tensorboard" / "by_episodes"),
+        purge_step=episode_windows * a.log_episodes + 1 if resumes else None,
+    )
+    if not resumes:
+        logger.text("hyperparameters", markdown_table(flatten_config(cfg)))
+        logger.text(
+            "axes",
+            "by_hours/*: step = simulated seconds per field; by_episodes/* (run by_episodes): step = "
+            f"episodes per field. Every point: mean over {a.learners} fields of each field's mean, "
+            "with its 95 % interval.",
+        )
+    metrics_file = run_dir / "metrics.jsonl"
+    ckpt_path = run_dir / "checkpoints" / LAST
+    config_yaml = OmegaConf.to_yaml(cfg, resolve=True)
+    budget_cycles = round(a.hours * CYCLES_PER_HOUR)
+
+    def save() -> None:
+        save_checkpoint(
+            ckpt_path,
+            domain="keepaway",
+            agent="sarsa",
+            config_yaml=config_yaml,
+            payload={
+                "state": {
+                    "agent": agent.state_dict(),
+                    "records": records.state_dict(),
+                    "resumes": resumes,
+                    "time_windows": time_windows,
+                    "episode_windows": episode_windows,
+                },
+                "history": history,
+                "policy": {
+                    "kind": "tile_sarsa",
+                    "tile_widths": agent.coder.widths.tolist(),
+                    "tilings": agent.coder.tilings,
+                    "size": agent.coder.size,
+                    "num_actions": agent.coder.num_actions,
+                    "learners": "field * keepers + keeper",
+                },
+                "domain_config": asdict(config),
+            },
+        )
+
+    def write(record: dict[str, float]) -> None:
+        history.append(record)
+        with metrics_file.open("a") as f:
+            f.write(json.dumps(record) + "\n")
+
+    desc = f"Sarsa keepers {config.keepers}v{config.takers}, {a.learners} fields"
+    if budget_cycles > 0:
+        initial, total, unit = _seconds(int(records.clock.min())), round(a.hours * 3600), "sim s"
+    else:
+        initial, total, unit = int(records.episodes.min()), a.episodes, "episode"
+    bar = tqdm(total=total, initial=initial, unit=unit, desc=desc, dynamic_ncols=True, mininterval=1.0)
+    start_wall, start_clock = time.perf_counter(), int(records.clock.sum())
+
+    def on_step(rec: KeepawayRecords) -> None:
+        nonlocal time_windows, episode_windows, saved_at
+        slowest = int(rec.clock.min())
+        while slowest >= (time_windows + 1) * window:
+            stats = rec.time_window(time_windows * window, (time_windows + 1) * window)
+            time_windows += 1
+            if stats is None:  # no episode ended in this window on any field
+                continue
+            wall = time.perf_counter() - start_wall
+            stats["field_cycles_per_s"] = (int(rec.clock.sum()) - start_clock) / max(wall, 1e-9)
+            for k in range(rec.keepers):
+                stats[f"decisions_total_keeper{k}"] = float(rec.table[:, 5 + k].sum()) / rec.fields
+            end = time_windows * window
+            logger.scalars(stats, _seconds(end), prefix="by_hours/")
+            write({"axis": "hours", "hours": end / CYCLES_PER_HOUR, "sim_seconds": _seconds(end), **stats})
+            bar.set_postfix(episode_s=f"{stats['episode_s_mean']:.2f}", hold=f"{stats['hold_share']:.2f}")
+        while int(rec.episodes.min()) >= (episode_windows + 1) * a.log_episodes:
+            lo = episode_windows * a.log_episodes
+            stats = rec.episode_window(lo, lo + a.log_episodes)
+            episode_windows += 1
+            episode_logger.scalars(stats, lo + a.log_episodes, prefix="by_episodes/")
+            write({"axis": "episodes", "episode": lo + a.log_episodes, **stats})
+        if slowest - saved_at >= every:
+            save()
+            logger.flush()
+            episode_logger.flush()
+            saved_at = slowest
+        position = _seconds(slowest) if budget_cycles > 0 else int(rec.episodes.min())
+        if position > bar.n:
+            bar.update(position - bar.n)
+
+    try:
+        run_sarsa_keepers(env, agent, records, cycles=budget_cycles, episodes=a.episodes, on_step=on_step)
+    finally:
+        bar.close()
+        save()
+        episode_logger.close()
+    timed = [h for h in history if h["axis"] == "hours"]
+    final = dict(timed[-1]) if timed else {}
+    if final:
+        final["wall_s"] = time.perf_counter() - start_wall
+        logger.hparams(flatten_config(cfg), {"hparam/episode_s_last": final["episode_s_mean"]})
+    logger.close()
+    return final
+
+
+def _seconds(cycles: int) -> int:
+    return cycles // CYCLES_PER_SECOND
