@@ -84,7 +84,10 @@ def test_unknown_group_option_names_the_allowed_ones(capsys):
     with pytest.raises(SystemExit) as info:
         check_group_choices(["agent=nosuch"])
     assert info.value.code == 2
-    assert capsys.readouterr().err.strip() == "error: unknown agent 'nosuch'; allowed: cem, sarsa, tamer"
+    assert (
+        capsys.readouterr().err.strip()
+        == "error: unknown agent 'nosuch'; allowed: cem, pg, qlearning, sarsa, tamer"
+    )
     check_group_choices(["domain=tetris", "domain.width=8", "-m"])  # valid ones pass
 
 

@@ -25,7 +25,7 @@ from hfrl_torch.feedback.log import FeedbackLog
 from hfrl_torch.fusion.schedules import AnnealedWeight, ConstantWeight, TrustWeight, WeightSchedule
 
 DOMAINS = ("tetris", "keepaway")
-AGENTS = ("cem", "tamer", "sarsa")
+AGENTS = ("cem", "tamer", "qlearning", "pg", "sarsa")
 FUSIONS = (
     "none",
     "human_only",
@@ -315,6 +315,14 @@ def validate_train_config(cfg: DictConfig) -> None:
                     f"domain.features={cfg.domain.features!r} with a trainer: CE + human feedback "
                     "fuses over the bt features (a prefix of H^'s knox set); allowed: bt"
                 )
+    elif agent == "qlearning":
+        from hfrl_torch.experiment.tetris_qlearning import check_qlearning
+
+        check_qlearning(cfg)
+    elif agent == "pg":
+        from hfrl_torch.experiment.tetris_pg import check_pg
+
+        check_pg(cfg)
     else:
         check_tamer(cfg)
         if fusion != "none":

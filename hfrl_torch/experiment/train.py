@@ -16,6 +16,8 @@ from hfrl_torch.experiment.factories import set_threads, validate_train_config
 from hfrl_torch.experiment.keepaway_sarsa import train_sarsa
 from hfrl_torch.experiment.tetris_cem import train_cem
 from hfrl_torch.experiment.tetris_cem_hf import train_cem_hf
+from hfrl_torch.experiment.tetris_pg import train_pg
+from hfrl_torch.experiment.tetris_qlearning import train_qlearning
 from hfrl_torch.experiment.tetris_tamer import train_tamer
 
 GROUPS = ("domain", "agent", "fusion", "human", "trainer", "logger")
@@ -117,6 +119,10 @@ def train(cfg: DictConfig) -> TrainResult:
             final = train_sarsa(cfg, run_dir, checkpoint)
         elif agent == "tamer":
             final = train_tamer(cfg, run_dir)
+        elif agent == "qlearning":
+            final = train_qlearning(cfg, run_dir)
+        elif agent == "pg":
+            final = train_pg(cfg, run_dir)
         elif cfg.trainer.name == "none":
             final = train_cem(cfg, run_dir, checkpoint)
         else:
@@ -132,9 +138,11 @@ def train(cfg: DictConfig) -> TrainResult:
     elif interrupted and agent == "sarsa":
         lines.append("Interrupted. Weights and finished episodes are saved (episodes in progress restart);")
         lines.append(f"continue with:  python train.py resume={run_dir}")
-    elif interrupted:
+    elif interrupted and agent == "tamer":
         lines.append(f"Interrupted. agent={agent} saves its checkpoint at the end, so there is none;")
         lines.append("every feedback event given so far is in feedback.jsonl.")
+    elif interrupted:
+        lines.append(f"Interrupted. agent={agent} saves its checkpoint at the end, so there is none.")
     elif final and agent == "sarsa":
         low, high = final["episode_s_ci95_low"], final["episode_s_ci95_high"]
         lines.append(
@@ -147,6 +155,19 @@ def train(cfg: DictConfig) -> TrainResult:
         low, high = final["eval/mean_policy_lines_ci95_low"], final["eval/mean_policy_lines_ci95_high"]
         mean = final["eval/mean_policy_lines_mean"]
         lines.append(f"Done: mean policy {mean:.1f} lines per game (95% CI {low:.1f}..{high:.1f})")
+    elif final and agent in ("qlearning", "pg"):
+        low, high = final["eval/lines_per_game_ci95_low"], final["eval/lines_per_game_ci95_high"]
+        mean, game = final["eval/lines_per_game_mean"], final["game"]
+        lines.append(
+            f"Done: game {game} of {cfg.agent.learners} learners: {mean:.1f} lines per game "
+            f"(95% CI {low:.1f}..{high:.1f}) while learning"
+        )
+        if "eval/greedy_lines_mean" in final:
+            g_low, g_high = final["eval/greedy_lines_ci95_low"], final["eval/greedy_lines_ci95_high"]
+            lines.append(
+                f"Greedy policies:  {final['eval/greedy_lines_mean']:.1f} lines per game over "
+                f"{cfg.agent.eval_games} fresh games each (95% CI over learners {g_low:.1f}..{g_high:.1f})"
+            )
     elif final:
         low, high = final["eval/lines_per_game_ci95_low"], final["eval/lines_per_game_ci95_high"]
         mean, game = final["eval/lines_per_game_mean"], final["game"]
