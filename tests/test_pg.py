@@ -189,11 +189,51 @@ def test_train_pg_writes_metrics_and_a_checkpoint_that_evaluate_plays(tmp_path):
         ("agent.temperature=0", "agent.temperature=0 is invalid"),
         ("agent.games_per_update=0", "agent.games_per_update=0 is invalid: must be an integer >= 1"),
         ("agent.baseline_decay=2", "agent.baseline_decay=2 is invalid"),
-        ("fusion=linear", "fusion='linear' with agent=pg"),
+        ("fusion=linear", "fusion='linear' fuses a trainer's H^ into the policy; choose a trainer"),
+        ("fusion=exponential trainer=oracle", "fusion='exponential' with agent=pg is invalid; allowed: none"),
+        ("fusion=linear trainer=oracle human.features=bt", "agent=pg with a trainer needs"),
     ],
 )
 def test_bad_values_fail_with_one_line(override, message):
-    args = ["agent=pg", "agent.natural=true", override] if "damping" in override else ["agent=pg", override]
+    args = (
+        ["agent=pg", "agent.natural=true", override]
+        if "damping" in override
+        else ["agent=pg", *override.split()]
+    )
     with pytest.raises(ConfigError) as info:
         check_pg(_cfg("train", *args))
     assert message in str(info.value) and "\n" not in str(info.value)
+
+
+def test_bias_shifts_the_policy_and_the_score_is_taken_under_it():
+    weight = _f([[0.0, 0.0]])
+    bias = _f([[0.0, math.log(3.0), 0.0, 0.0]])  # H^ likes placement 1: p = (1/4, 3/4)
+    score, fisher = score_and_fisher(FEATS, ALLOWED, torch.tensor([0]), weight, 1.0, bias=bias)
+    fbar = 0.25 * _f([1.0, 0.0]) + 0.75 * _f([0.0, 2.0])
+    torch.testing.assert_close(score[0], _f([1.0, 0.0]) - fbar)
+    torch.testing.assert_close(fisher[0], 3 / 16 * _f([[1.0, -2.0], [-2.0, 4.0]]))  # p0 p1 (f0-f1)(f0-f1)^T
+    agent = PolicyGradient(2, 1, 0.1)
+    p = agent(FEATS, MASK, TERMINAL, bias).exp()[0]
+    torch.testing.assert_close(p[:2], _f([0.25, 0.75]))
+
+
+def test_pg_with_a_simulated_trainer_learns_h_and_updates_trust_per_learner(tmp_path):
+    cfg = _cfg(
+        "train",
+        "agent=pg",
+        "fusion=linear",
+        "trainer=oracle",
+        "agent.games=6",
+        "agent.learners=3",
+        "agent.eval_games=0",
+        "domain.width=6",
+        "domain.height=8",
+        "logger.backend=none",
+    )
+    final = train_pg(cfg, tmp_path)
+    rows = [json.loads(x) for x in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+    assert rows[0]["fusion/weight_mean"] == 0.5 and rows[-1]["fusion/weight_mean"] != 0.5
+    assert all(0.0 <= r["fusion/match_rate_mean"] <= 1.0 for r in rows)
+    assert sum(r["feedback/given_mean"] for r in rows) > 0 and final["eval/lines_per_game_mean"] >= 0
+    events = (tmp_path / "feedback.jsonl").read_text().splitlines()
+    assert len(events) > 10 and '"simulated:oracle"' in events[-1]

@@ -20,6 +20,7 @@ def score_and_fisher(
     weight: torch.Tensor,
     temperature: float,
     fisher: bool = True,
+    bias: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """The score grad_theta log pi(a | s) ``[L, F]`` of the placements taken and (with ``fisher``) the
     Fisher matrix of each state, E_a~pi[score score^T] ``[L, F, F]``, under
@@ -27,9 +28,12 @@ def score_and_fisher(
 
     With fbar = E_a~pi f(s'_a): score = (f(s'_a) - fbar) / T and Fisher = Cov_pi(f(s'_a)) / T^2 (the exact
     expectation over the placements, Kakade's F_s(theta), not the outer product of the one sampled).
+    ``bias`` ``[L, A]`` (e.g. w H^(s, a), fusion with the person's model) is added to theta . f before the
+    division by T; it does not depend on theta, so the score keeps its form under the biased policy.
     """
     f = features.to(torch.float64)
-    logits = torch.einsum("laf,lf->la", f, weight) / temperature
+    values = torch.einsum("laf,lf->la", f, weight)
+    logits = (values if bias is None else values + bias.to(torch.float64)) / temperature
     p = logits.masked_fill(~allowed, -torch.inf).softmax(-1)
     centred = (f - (p.unsqueeze(-1) * f).sum(1, keepdim=True)) / temperature
     score = centred[torch.arange(f.shape[0]), action]
@@ -127,17 +131,30 @@ class PolicyGradient(nn.Module):
             self.baseline_den > 0, self.baseline_num / self.baseline_den.clamp(min=1e-300), 0.0
         )
 
-    def forward(self, features: torch.Tensor, mask: torch.Tensor, terminal: torch.Tensor) -> torch.Tensor:
-        """log pi(a | s) ``[L, A]`` of every placement (-inf where not allowed)."""
-        logits = torch.einsum("laf,lf->la", features.to(torch.float64), self.weight) / self.temperature
+    def forward(
+        self,
+        features: torch.Tensor,
+        mask: torch.Tensor,
+        terminal: torch.Tensor,
+        bias: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """log pi(a | s) ``[L, A]`` of every placement (-inf where not allowed); ``bias`` ``[L, A]`` is added
+        to theta . f before dividing by T (fusion with H^: pi ~ exp((theta . f + w H^) / T))."""
+        values = torch.einsum("laf,lf->la", features.to(torch.float64), self.weight)
+        logits = (values if bias is None else values + bias.to(torch.float64)) / self.temperature
         return logits.masked_fill(~allowed_placements(mask, terminal), -torch.inf).log_softmax(-1)
 
     @torch.no_grad()
-    def act(self, features: torch.Tensor, mask: torch.Tensor, terminal: torch.Tensor) -> torch.Tensor:
+    def act(
+        self,
+        features: torch.Tensor,
+        mask: torch.Tensor,
+        terminal: torch.Tensor,
+        bias: torch.Tensor | None = None,
+    ) -> torch.Tensor:
         """Placements ``[L]`` sampled from pi with the module's generator."""
-        return torch.multinomial(self(features, mask, terminal).exp(), 1, generator=self.generator).squeeze(
-            -1
-        )
+        log_p = self(features, mask, terminal, bias)
+        return torch.multinomial(log_p.exp(), 1, generator=self.generator).squeeze(-1)
 
     @torch.no_grad()
     def record(
@@ -147,12 +164,13 @@ class PolicyGradient(nn.Module):
         terminal: torch.Tensor,
         action: torch.Tensor,
         active: torch.Tensor | None = None,
+        bias: torch.Tensor | None = None,
     ) -> None:
-        """Add the score and the state's Fisher matrix of the placements just taken to each active
-        learner's game in progress."""
+        """Add the score and the state's Fisher matrix of the placements just taken (under the policy with
+        ``bias``, as they were sampled) to each active learner's game in progress."""
         allowed = allowed_placements(mask, terminal)
         score, fisher = score_and_fisher(
-            features, allowed, action, self.weight, self.temperature, fisher=self.natural
+            features, allowed, action, self.weight, self.temperature, fisher=self.natural, bias=bias
         )
         live = torch.ones(self.learners, dtype=torch.bool) if active is None else active.to(torch.bool)
         self.game_score += torch.where(live.unsqueeze(-1), score, 0.0)
