@@ -73,11 +73,25 @@ def test_submitit_launcher_runs_with_its_local_executor(tmp_path):
         assert len((sweep / job / "metrics.jsonl").read_text().splitlines()) == 2
 
 
-def test_thesis_experiment_config_composes_and_runs_one_tiny_iteration(tmp_path):
-    sweep = tmp_path / "fig"
-    out = _run("train.py", "-m", "+experiment=fig4_1", "seed=0", *TINY, f"hydra.sweep.dir={sweep}")
+SMALL = ["domain.width=6", "domain.height=8", "logger.backend=none"]
+EXPERIMENTS = {
+    "fig3_3": (False, ["agent.games=1", "agent.learners=2"], "Done: game 1"),
+    "fig3_4": (False, ["agent.games=2", "agent.learners=2", "agent.eval_games=1"], "Done: game 2"),
+    "fig3_5": (False, ["agent.games=2", "agent.learners=2", "agent.eval_games=1"], "Done: game 2"),
+    "fig3_6": (True, [*TINY[2:], "seed=0"], "Done: mean policy"),
+    "fig4_1": (True, [*TINY[2:], "seed=0"], "Done: mean policy"),
+    "fig4_2": (True, ["agent.games=2", "agent.learners=2", "agent.eval_games=1"], "Done: game 2"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(EXPERIMENTS))
+def test_each_thesis_experiment_config_composes_and_runs_tiny(tmp_path, name):
+    sweep, extra, done = EXPERIMENTS[name]
+    where = f"hydra.sweep.dir={tmp_path}" if sweep else f"hydra.run.dir={tmp_path}"
+    args = ["-m"] if sweep else []
+    out = _run("train.py", *args, f"+experiment={name}", *SMALL, *extra, where)
     assert out.returncode == 0, out.stderr[-3000:]
-    assert out.stderr.count("Done: mean policy") == 3  # fusion none, linear, annealed
+    assert out.stderr.count(done) == (3 if name in ("fig4_1", "fig4_2") else 1)
 
 
 def test_optuna_sweeper_searches_the_fusion_weight(tmp_path):
