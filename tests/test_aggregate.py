@@ -96,3 +96,28 @@ def test_reach_times_each_condition_and_counts_never(tmp_path):
     # none ends at 10, 20, 30, 40: only seed 3 reaches 35 (at 2); the others count as last + 1 = 3
     assert rows[0]["reach_never"] == 3 and rows[0]["reach_mean"] == pytest.approx((3 + 3 + 3 + 2) / 4)
     assert rows[1]["reach_never"] == 1 and "to reach 35" in md
+
+
+def test_a_run_of_several_learners_counts_as_one_seed_per_learner(tmp_path):
+    import torch
+
+    from hfrl_torch.common.checkpoint import save_checkpoint
+
+    run = tmp_path / "tamer"
+    run.mkdir()
+    (run / "config.yaml").write_text("seed: 2\nagent:\n  name: tamer\n")
+    (run / "metrics.jsonl").write_text(
+        "\n".join(json.dumps({"game": g, "eval/lines_per_game_mean": 0.0}) for g in (1, 2)) + "\n"
+    )
+    lines = torch.tensor([[1, 5], [2, 7], [0, 3]])
+    save_checkpoint(
+        run / "checkpoints" / "last.pt",
+        domain="tetris",
+        agent="tamer",
+        config_yaml="",
+        payload={"state": {"lines": lines}},
+    )
+    runs, _ = find_runs([tmp_path])
+    assert sorted(int(r.config["seed"]) for r in runs) == [2000, 2001, 2002]
+    rows, _ = report(group_runs(runs))
+    assert rows[0]["runs"] == 3 and rows[0]["mean"] == pytest.approx(5.0)

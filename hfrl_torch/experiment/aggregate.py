@@ -56,8 +56,14 @@ class Group:
     def seeds(self) -> list[int]:
         return [int(r.config.get("seed", i)) for i, r in enumerate(self.runs)]
 
+    last: int = 1
+
     def finals(self) -> dict[int, float]:
-        return {s: float(r.rows[-1][self.y_key]) for s, r in zip(self.seeds, self.runs, strict=True)}
+        """Per seed, the mean of the curve's last ``last`` points (1: the final value)."""
+        return {
+            s: sum(float(row[self.y_key]) for row in r.rows[-self.last :]) / len(r.rows[-self.last :])
+            for s, r in zip(self.seeds, self.runs, strict=True)
+        }
 
     def reach(self, level: float) -> dict[int, float]:
         """Per seed, the first x at which the curve reaches ``level`` (the last x + 1 if it never does)."""
@@ -99,11 +105,31 @@ def find_runs(dirs: list[Path]) -> tuple[list[Run], list[Path]]:
                         break  # a run killed mid-write: keep the lines before
             config = OmegaConf.to_container(OmegaConf.load(cfg_file), resolve=False)
             assert isinstance(config, dict)
-            if rows:
-                runs.append(Run(run_dir, config, rows))
-            else:
+            if not rows:
                 broken.append(run_dir)
+                continue
+            runs.extend(_learners(Run(run_dir, config, rows)))
     return runs, broken
+
+
+def _learners(run: Run) -> list[Run]:
+    """A run of L independent learners (TAMER, Q-learning, PG: one board each, lines per game in its
+    checkpoint) as L runs with seeds ``seed * 1000 + learner``; any other run as itself."""
+    ckpt = run.path / "checkpoints" / "last.pt"
+    if "game" not in run.rows[-1] or not ckpt.exists():
+        return [run]
+    lines = torch.load(ckpt, map_location="cpu", weights_only=True).get("state", {}).get("lines")
+    if not isinstance(lines, torch.Tensor) or lines.ndim != 2 or lines.shape[0] < 2:
+        return [run]
+    seed = int(run.config.get("seed", 0))
+    return [
+        Run(
+            run.path,
+            {**run.config, "seed": seed * 1000 + i},
+            [{"game": g + 1, "eval/lines_per_game_mean": float(v)} for g, v in enumerate(lines[i].tolist())],
+        )
+        for i in range(lines.shape[0])
+    ]
 
 
 def group_runs(runs: list[Run]) -> list[Group]:
@@ -227,7 +253,8 @@ def report(
         )
         ref_mark = " (reference)" if g is ref else ""
         md.append(
-            f"| {g.label}{ref_mark} | {len(g.runs)} | {g.y_key} at {g.x_key} {g.runs[0].rows[-1][g.x_key]} "
+            f"| {g.label}{ref_mark} | {len(g.runs)} | {g.y_key} at {g.x_key} {g.runs[0].rows[-1][g.x_key]}"
+            f"{f' (mean of the last {g.last})' if g.last > 1 else ''} "
             f"| {s['mean']:.2f} | {s['ci95_low']:.2f} .. {s['ci95_high']:.2f} | {diff} "
             f"| {p}{' ' + kind if kind else ''} |"
         )
@@ -304,6 +331,11 @@ def aggregate(cfg: DictConfig) -> dict[str, object]:
     if not runs:
         raise ConfigError(f"runs={[str(d) for d in dirs]} holds no run with metrics.jsonl")
     groups = group_runs(runs)
+    last = cfg.get("last") or 1
+    if isinstance(last, bool) or not isinstance(last, int) or last < 1:
+        raise ConfigError(f"last={last!r} is invalid: must be an integer >= 1 (points averaged at the end)")
+    for g in groups:
+        g.last = last
     labels = [g.label for g in groups]
     base = cfg.get("baseline")
     if base is None:
