@@ -298,24 +298,40 @@ def _reach_table(groups: list[Group], ref: Group, level: float, rows: list[dict[
     return "\n".join(md)
 
 
+def _smooth(values: list[float], window: int) -> list[float]:
+    """Trailing moving average over ``window`` points (shorter at the start)."""
+    out, total = [], 0.0
+    for i, v in enumerate(values):
+        total += v
+        if i >= window:
+            total -= values[i - window]
+        out.append(total / min(i + 1, window))
+    return out
+
+
 def plot(groups: list[Group], path: Path) -> None:
-    """Learning curves, mean and 95 % band over seeds, one line per group (PNG)."""
+    """Learning curves, mean and 95 % band over seeds, one line per group (PNG). Curves of more than 50
+    points are drawn as trailing moving averages over 2 % of their length (said on the axis)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7, 4.2), dpi=110)
+    smoothed = False
     for g in groups:
         if not g.y_key:
             continue
         xs, mean, low, high = _curve(g)
+        window = max(1, len(xs) // 50)
+        mean, low, high = (_smooth(v, window) for v in (mean, low, high))
+        smoothed = smoothed or window > 1
         ax.plot(xs, mean, label=f"{g.label} (n={len(g.runs)})")
         ax.fill_between(xs, low, high, alpha=0.2)
     ys = {g.y_key for g in groups if g.y_key}
     xk = {g.x_key for g in groups if g.x_key}
     ax.set_xlabel(", ".join(sorted(xk)) or "x")
-    ax.set_ylabel(", ".join(sorted(ys)) or "y")
+    ax.set_ylabel((", ".join(sorted(ys)) or "y") + (" (moving average)" if smoothed else ""))
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
     fig.tight_layout()
