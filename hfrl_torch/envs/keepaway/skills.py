@@ -379,6 +379,8 @@ def kick_ball_close_to_body(
     too_strong = kick[..., 1] > physics.max_power
     capped = torch.cat((kick[..., :1], kick[..., 1:2].clamp(max=physics.max_power), kick[..., 2:]), dim=-1)
     freeze = too_strong & (norm(ball_vel) > 0.1)
+    if not bool(freeze.any()):  # the common case: skip the freeze kick's arithmetic for every field
+        return capped
     return choose(freeze, freeze_ball(pos, vel, body, ball_pos, ball_vel, physics, rate), capped)
 
 
