@@ -34,6 +34,7 @@ EPISODE_CYCLES = "episode_cycles"
 END_CAUSE = "end_cause"  # 0 = running, 1 = out of bounds, 2 = taken
 EPISODE_END_REWARDS = "episode_end_rewards"  # [B, n] each keeper's cycles since its last decision at the end
 STEP_CYCLES = "step_cycles"  # [B] cycles simulated during this step
+DECIDING = "deciding"  # [B] the field's observation/keeper/action_mask are a real decision now
 
 # human feedback channel (issue 3)
 FEEDBACK = "human_feedback"

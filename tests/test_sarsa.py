@@ -200,13 +200,17 @@ class RecordingSarsa(SarsaLambda):
         super().end_episode(learners, reward)
 
 
-def test_smdp_rewards_are_per_keeper():
-    fields, n = 3, 3
+@pytest.mark.parametrize("sync,per_learner", [("all", 1), ("any", 1), ("any", 3)])
+def test_smdp_rewards_are_per_keeper(sync, per_learner):
+    teams, n = 3, 3
+    fields = teams * per_learner
     config = KeepawayConfig()
-    env = KeepawayEnv(fields, config, seed=11)
-    coder = TileCoding(keepaway_tile_widths(), 3, learners=fields * n, size=2**12)
-    agent = RecordingSarsa(env, coder, epsilon=0.3, seed=11)
-    records = run_sarsa_keepers(env, agent, KeepawayRecords(fields, n), episodes=2)
+    env = KeepawayEnv(fields, config, seed=11, sync=sync)
+    coder = TileCoding(keepaway_tile_widths(), 3, learners=teams * n, size=2**12)
+    slots = torch.arange(fields * n)
+    tables = (slots // n // per_learner) * n + slots % n  # each field's keepers: their team's tables
+    agent = RecordingSarsa(env, coder, epsilon=0.3, seed=11, tables=tables)
+    records = run_sarsa_keepers(env, agent, KeepawayRecords(fields, n, per_learner), episodes=2 * per_learner)
 
     durations = {f: [] for f in range(fields)}
     for row in records.table.tolist():
@@ -240,8 +244,8 @@ def test_smdp_rewards_are_per_keeper():
                     assert reward == 0.0
                 if learner % n == n - 1:
                     episode[field] += 1
-    assert checked >= fields * 2 * 2  # most episodes involve at least two keepers
-    assert records.table.shape[0] >= fields * 2
+    assert records.table.shape[0] >= teams * 2 * per_learner
+    assert checked >= 1.5 * records.table.shape[0]  # most episodes involve at least two keepers
     decided = sum(len(e[1]) for e in agent.events if e[0] == "decide")
     assert int(records.table[:, 5:].sum() + records.decisions.sum()) == decided  # per-keeper counts
 
@@ -276,10 +280,12 @@ def test_defaults_are_valid_and_bad_values_fail():
         ("agent.table_bits=31", "agent.table_bits=31 is invalid"),
         ("agent.max_traces=10", "agent.max_traces=10 is invalid"),
         ("agent.learners=5000", "GiB"),
+        ("agent.fields_per_learner=0", "agent.fields_per_learner=0 is invalid"),
+        ("agent.fields_per_learner=5000 agent.lambda=0.9", "GiB"),  # trace slots per field and keeper
         ("domain.takers=1", "domain.takers=1 is invalid"),
     ]:
         with pytest.raises(ConfigError, match=message):
-            check_sarsa(_cfg(override))
+            check_sarsa(_cfg(*override.split()))
 
 
 def test_train_writes_curves_and_checkpoint_and_resumes(tmp_path):
@@ -288,7 +294,8 @@ def test_train_writes_curves_and_checkpoint_and_resumes(tmp_path):
     final = train_sarsa(cfg, tmp_path)
     lines = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
     assert {"hours", "episodes"} <= {line["axis"] for line in lines}
-    assert final["episode_s_mean"] > 0 and final["fields"] == 2
+    assert final["episode_s_mean"] > 0 and 1 <= final["learners"] <= 2
+    assert max(line["learners"] for line in lines) == 2  # windows count the learners with episodes in them
     ckpt = load_checkpoint(tmp_path, domain="keepaway", agent="sarsa")
     rows = ckpt["state"]["records"]["rows"]
     assert ckpt["state"]["agent"]["weight"].shape == (2 * 3, 2**12)
@@ -301,3 +308,68 @@ def test_train_writes_curves_and_checkpoint_and_resumes(tmp_path):
     assert torch.equal(again["state"]["records"]["rows"][: rows.shape[0]], rows)  # history kept
     assert int(again["state"]["records"]["clock"].min()) >= 0.006 * 36000
     assert len(again["history"]) > len(ckpt["history"])
+
+
+def test_fields_per_learner_share_tables_and_sum_the_clock(tmp_path):
+    small = [
+        "agent.learners=2",
+        "agent.fields_per_learner=3",
+        "agent.table_bits=12",
+        "agent.log_minutes=0.05",
+    ]
+    final = train_sarsa(_cfg(*small, "agent.hours=0.006", "agent.checkpoint_minutes=0.1"), tmp_path)
+    assert final["learners"] == 2
+    ckpt = load_checkpoint(tmp_path, domain="keepaway", agent="sarsa")
+    state = ckpt["state"]
+    assert state["agent"]["weight"].shape == (2 * 3, 2**12)  # tables per learner and keeper
+    assert state["agent"]["trace_index"].shape[0] == 2 * 3 * 3  # traces per field and keeper
+    clock = state["records"]["clock"]
+    assert clock.shape == (6,) and int(clock.view(2, 3).sum(1).min()) >= 0.006 * 36000
+    assert int(clock.max()) < 0.006 * 36000  # each field ran about a third of its learner's time
+    rows = state["records"]["rows"]
+    for learner in range(2):  # ordinals number each learner's episodes over all its fields
+        mine = rows[rows[:, 0] // 3 == learner]
+        assert mine[:, 1].sort().values.tolist() == list(range(mine.shape[0]))
+        assert bool((mine[1:, 2] >= mine[:-1, 2]).all())  # learner clock at the end, nondecreasing
+    assert int(state["records"]["episodes"].sum()) == rows.shape[0]
+
+    train_sarsa(_cfg(*small, "agent.hours=0.009", "agent.checkpoint_minutes=0.1"), tmp_path, checkpoint=ckpt)
+    again = load_checkpoint(tmp_path)["state"]["records"]
+    assert torch.equal(again["rows"][: rows.shape[0]], rows)
+    assert int(again["clock"].view(2, 3).sum(1).min()) >= 0.009 * 36000
+
+
+def test_make_sarsa_keepers_maps_fields_to_their_learners_tables():
+    config = KeepawayConfig()
+    agent = make_sarsa_keepers(config, 2, fields_per_learner=3, size=2**10)
+    assert agent.learners == 2 * 3 * 3 and agent.coder.learners == 2 * 3
+    field, keeper = torch.arange(18) // 3, torch.arange(18) % 3
+    assert torch.equal(agent.tables, (field // 3) * 3 + keeper)
+    shared = make_sarsa_keepers(config, 2, fields_per_learner=3, size=2**10, share_weights=True)
+    assert shared.coder.learners == 2 and torch.equal(shared.tables, field // 3)
+
+
+def test_simultaneous_updates_of_one_table_add_up():
+    """Two rows that share a weight table and decide in the same call: the table moves by the sum of
+    the two updates, each computed from the weights before the call (not one after the other)."""
+    widths = keepaway_tile_widths()
+    gen = torch.Generator().manual_seed(9)
+    start = torch.rand(1, 2**10, generator=gen, dtype=torch.float64)
+    obs = [torch.rand(2, 13, generator=gen) * 15 for _ in range(2)]
+    mask = torch.ones(2, 3, dtype=torch.bool)
+
+    def agent(rows: int) -> SarsaLambda:
+        coder = TileCoding(widths, 3, learners=1, size=2**10, dtype=torch.float64)
+        coder.weight.copy_(start)
+        return SarsaLambda(coder, epsilon=0.0, tables=torch.zeros(rows, dtype=torch.int64))
+
+    both = agent(2)
+    both.start_episode(torch.arange(2), obs[0], mask)
+    both.step(torch.arange(2), torch.tensor([3.0, 5.0]), obs[1], mask)
+    change = torch.zeros_like(start)
+    for i in range(2):
+        one = agent(1)
+        one.start_episode(ONE, obs[0][i : i + 1], mask[:1])
+        one.step(ONE, torch.tensor([3.0, 5.0])[i : i + 1], obs[1][i : i + 1], mask[:1])
+        change += one.coder.weight - start
+    assert torch.allclose(both.coder.weight - start, change, rtol=0, atol=1e-12)

@@ -55,8 +55,8 @@ def set_threads(cfg: DictConfig) -> int:
     """Apply ``threads`` to torch and numba (the engines' games run in parallel over threads)."""
     n = require_int(cfg, "threads", 1, 256)
     n = min(n, numba.config.NUMBA_NUM_THREADS)
-    torch.set_num_threads(n)
     numba.set_num_threads(n)
+    torch.set_num_threads(n)  # last: numba's OpenMP layer can reset torch's thread count
     return n
 
 

@@ -1,9 +1,13 @@
 """Keepaway keepers that learn by SMDP Sarsa(lambda) from the environment alone: ``train.py domain=keepaway
 agent=sarsa``.
 
-One batched ``KeepawayEnv`` holds ``agent.learners`` fields; every field is an independent team (one
-seed of the experiment) and every keeper of it an independent learner (its own tile-coded weights,
-learner index = field * keepers + keeper), learning from its own decisions only (thesis Figure 5.4):
+``agent.learners`` independent *learners* (teams of keepers: the seeds of the experiment) each play on
+``agent.fields_per_learner`` fields of one batched ``KeepawayEnv`` (``sync="any"``: every field runs on
+while others decide, so no field idles). Field f belongs to learner f // fields_per_learner; keeper k of
+it reads and updates the weight table (f // fields_per_learner) * keepers + k (its own tile-coded
+weights; one per learner with ``share_weights``), and learns from its own decisions only (thesis
+Figure 5.4), each field giving each keeper its own SMDP transitions, pending action and traces (state
+slot f * keepers + k):
 
 * at a keeper's first decision in an episode, RLstartEpisode;
 * at its later decisions, RLstep with reward = cycles since its own last decision (the env's
@@ -11,12 +15,17 @@ learner index = field * keepers + keeper), learning from its own decisions only 
 * when the episode ends, RLendEpisode for every keeper with a pending action, with its entry of the
   env's ``episode_end_rewards`` (cycles since its last decision).
 
-Each field's simulated clock is the sum of its finished episodes plus the current episode's cycles.
-Curves of the episode duration (simulated seconds, mean over fields with a 95 % interval) go to
-TensorBoard and ``metrics.jsonl`` against simulated time (step = simulated seconds) and, in
-``tensorboard/by_episodes``, against episodes per field. Checkpoints hold the weights and every
-finished episode; a resumed run abandons the episodes that were in progress (their learning so far
-is kept) and starts new ones.
+With fields_per_learner = 1 this is the reference (one field per team). With more, a table takes the
+updates of several fields in the same step, summed (``index_add_``) rather than applied one after the
+other as a single simulator would: a departure from the reference's sequential updates.
+
+A learner's simulated clock is the experience of all its fields summed (each field's finished episodes
+plus its current episode's cycles): the ``hours`` budget and the curves use it. Curves of the episode
+duration (simulated seconds, each learner's mean, then the mean over learners with a 95 % interval) go
+to TensorBoard and ``metrics.jsonl`` against simulated time per learner (step = simulated seconds) and,
+in ``tensorboard/by_episodes``, against episodes per learner. Checkpoints hold the weights and every
+finished episode; a resumed run abandons the episodes that were in progress (their learning so far is
+kept) and starts new ones.
 """
 
 from __future__ import annotations
@@ -34,7 +43,7 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from hfrl_torch import keys
-from hfrl_torch.agents.sarsa import SarsaLambda
+from hfrl_torch.agents.sarsa import SarsaLambda, trace_capacity
 from hfrl_torch.common.checkpoint import LAST, save_checkpoint
 from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.common.logger import flatten_config, markdown_table
@@ -54,8 +63,9 @@ MAX_TABLE_GIB = 16.0  # refuse configs whose weight tables alone would need more
 
 def make_sarsa_keepers(
     config: KeepawayConfig,
-    fields: int,
+    learners: int,
     *,
+    fields_per_learner: int = 1,
     alpha: float = 0.125,
     epsilon: float = 0.01,
     lambda_: float = 0.0,
@@ -68,20 +78,22 @@ def make_sarsa_keepers(
     seed: int = 0,
     device: str | torch.device = "cpu",
 ) -> SarsaLambda:
-    """Sarsa(lambda) learners for every keeper of ``fields`` fields (learner = field * keepers +
-    keeper), tile-coded with the reference's widths: one weight table of ``size`` per keeper, or per
-    field with ``share_weights`` (the keepers of a team share it, the reference's "hive mind")."""
+    """Sarsa(lambda) keepers for ``learners`` teams of ``fields_per_learner`` fields each, tile-coded with
+    the reference's widths. Agent rows (pending action, traces) are per field and keeper, f * keepers +
+    k; weight tables are per team and keeper, (f // fields_per_learner) * keepers + k, or per team with
+    ``share_weights`` (the keepers of a team share it, the reference's "hive mind")."""
     n = config.keepers
-    learners = torch.arange(fields * n)
+    slots = torch.arange(learners * fields_per_learner * n)
+    team = slots // n // fields_per_learner
     coder = TileCoding(
         keepaway_tile_widths(n, config.takers),
         num_actions=config.num_actions,
-        learners=fields if share_weights else fields * n,
+        learners=learners if share_weights else learners * n,
         tilings=tilings,
         size=size,
         device=device,
     )
-    tables = learners // n if share_weights else learners
+    tables = team if share_weights else team * n + slots % n
     return SarsaLambda(coder, alpha, epsilon, lambda_, gamma, min_trace, max_traces, seed=seed, tables=tables)
 
 
@@ -89,19 +101,23 @@ def make_sarsa_keepers(
 
 
 class KeepawayRecords:
-    """Every finished episode of every field, and each field's simulated clock.
+    """Every finished episode of every field, each field's simulated clock and each learner's (the sum
+    of its ``fields_per_learner`` fields' clocks; field f belongs to learner f // fields_per_learner).
 
-    One row per episode: field, ordinal (its number within the field), clock at its end (cycles),
-    duration (cycles), HoldBall decisions, then the decisions of each keeper.
+    One row per episode: field, ordinal (its number within the learner), the learner's clock at its end
+    (cycles), duration (cycles), HoldBall decisions, then the decisions of each keeper.
     """
 
     FIELD, ORDINAL, END, DURATION, HOLDS = range(5)
 
-    def __init__(self, fields: int, keepers: int) -> None:
-        self.fields, self.keepers = fields, keepers
+    def __init__(self, fields: int, keepers: int, fields_per_learner: int = 1) -> None:
+        if fields < 1 or fields_per_learner < 1 or fields % fields_per_learner:
+            raise ValueError(f"{fields} fields do not split into learners of {fields_per_learner} fields")
+        self.fields, self.keepers, self.fields_per_learner = fields, keepers, fields_per_learner
+        self.learners = fields // fields_per_learner
         self.finished_cycles = torch.zeros(fields, dtype=torch.int64)  # clock at the current episode's start
         self.clock = torch.zeros(fields, dtype=torch.int64)
-        self.episodes = torch.zeros(fields, dtype=torch.int64)
+        self.episodes = torch.zeros(self.learners, dtype=torch.int64)
         self.holds = torch.zeros(fields, dtype=torch.int64)  # of the episode in progress
         self.decisions = torch.zeros(fields, keepers, dtype=torch.int64)  # of the episode in progress
         self._rows: list[torch.Tensor] = [torch.zeros(0, 5 + keepers, dtype=torch.int64)]
@@ -113,31 +129,42 @@ class KeepawayRecords:
             self._rows = [torch.cat(self._rows)]
         return self._rows[0]
 
-    def decided(self, keeper: torch.Tensor, action: torch.Tensor) -> None:
-        """Count one decision of ``keeper`` [B] (action [B]) on every field."""
-        self.decisions[torch.arange(self.fields), keeper.cpu()] += 1
-        self.holds += (action.cpu() == 0).long()
+    @property
+    def learner_clock(self) -> torch.Tensor:
+        """Simulated cycles of each learner [L]: its fields' clocks summed."""
+        return self.clock.view(self.learners, self.fields_per_learner).sum(1)
+
+    def learner_of(self, fields: torch.Tensor) -> torch.Tensor:
+        """The learner of each field index in ``fields``."""
+        return torch.div(fields, self.fields_per_learner, rounding_mode="floor")
+
+    def decided(self, fields: torch.Tensor, keeper: torch.Tensor, action: torch.Tensor) -> None:
+        """Count one decision of ``keeper`` [M] (action [M]) on each of the distinct ``fields`` [M]."""
+        fields = fields.cpu()
+        self.decisions[fields, keeper.cpu()] += 1
+        self.holds[fields] += (action.cpu() == 0).long()
 
     def advance(self, episode_cycles: torch.Tensor) -> None:
-        """Set the clocks from the cycles [B] of the episodes in progress."""
+        """Set the clocks from the cycles [B] of the episodes in progress (or just ended)."""
         self.clock = self.finished_cycles + episode_cycles.cpu()
 
     def finish(self, ended: torch.Tensor, durations: torch.Tensor) -> None:
-        """Record the episodes that ended on fields ``ended`` [B] with ``durations`` [B] cycles."""
+        """Record the episodes that ended on fields ``ended`` [B] with ``durations`` [B] cycles; call
+        :meth:`advance` with the same step's cycles first, so that the learners' clocks include them."""
         rows = ended.cpu().nonzero().squeeze(-1)
         duration = durations.cpu()[rows]
-        end = self.finished_cycles[rows] + duration
+        learner = self.learner_of(rows)
+        _, counts = torch.unique_consecutive(learner, return_counts=True)  # rows ascending: learners too
+        starts = torch.repeat_interleave(counts.cumsum(0) - counts, counts)
+        ordinal = self.episodes[learner] + torch.arange(rows.numel()) - starts
+        self.finished_cycles[rows] += duration
+        self.clock[rows] = self.finished_cycles[rows]
+        end = self.learner_clock[learner]
         row = torch.cat(
-            (
-                torch.stack((rows, self.episodes[rows], end, duration, self.holds[rows]), 1),
-                self.decisions[rows],
-            ),
-            1,
+            (torch.stack((rows, ordinal, end, duration, self.holds[rows]), 1), self.decisions[rows]), 1
         )
         self._rows.append(row)
-        self.finished_cycles[rows] = end
-        self.clock[rows] = end
-        self.episodes[rows] += 1
+        self.episodes.index_add_(0, learner, torch.ones_like(learner))
         self.holds[rows] = 0
         self.decisions[rows] = 0
 
@@ -147,6 +174,11 @@ class KeepawayRecords:
 
     def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
         """Continue after the saved records, with fresh episodes starting at the saved clocks."""
+        if state["clock"].shape != self.clock.shape or state["episodes"].shape != self.episodes.shape:
+            raise ValueError(
+                f"records of {state['clock'].numel()} fields / {state['episodes'].numel()} learners cannot "
+                f"continue as {self.fields} fields / {self.learners} learners"
+            )
         self._rows = [state["rows"].clone()]
         self.clock = state["clock"].clone()
         self.finished_cycles = state["clock"].clone()
@@ -155,22 +187,25 @@ class KeepawayRecords:
         self.decisions.zero_()
 
     def summary(self, rows: torch.Tensor) -> dict[str, float]:
-        """Episode duration over fields (each field's mean in seconds, then mean and 95 % interval),
-        HoldBall share and decisions per episode of each keeper, for the episodes ``rows``."""
+        """Episode duration over learners (each learner's mean in seconds over its fields' episodes,
+        then mean and 95 % interval over learners), HoldBall share and decisions per episode of each
+        keeper, for the episodes ``rows``."""
         table = rows.double()
-        per_field = [
-            table[table[:, self.FIELD] == f, self.DURATION].mean() / CYCLES_PER_SECOND
-            for f in range(self.fields)
-            if bool((table[:, self.FIELD] == f).any())
-        ]
-        s = summarize(torch.stack(per_field), floor=0.0)
+        learner = self.learner_of(rows[:, self.FIELD])
+        count = torch.bincount(learner, minlength=self.learners)
+        total = torch.zeros(self.learners, dtype=torch.float64).index_add_(
+            0, learner, table[:, self.DURATION]
+        )
+        seen = count > 0
+        per_learner = total[seen] / count[seen] / CYCLES_PER_SECOND
+        s = summarize(per_learner, floor=0.0)
         decisions = table[:, 5:]
         out = {
             "episode_s_mean": s["mean"],
             "episode_s_ci95_low": s["ci95_low"],
             "episode_s_ci95_high": s["ci95_high"],
-            "episode_s_median_of_fields": s["median"],
-            "fields": float(s["n"]),
+            "episode_s_median_of_learners": s["median"],
+            "learners": float(s["n"]),
             "episodes": float(table.shape[0]),
             "hold_share": float(table[:, self.HOLDS].sum() / decisions.sum().clamp(min=1)),
         }
@@ -179,13 +214,13 @@ class KeepawayRecords:
         return out
 
     def time_window(self, start: int, stop: int) -> dict[str, float] | None:
-        """Summary of the episodes that ended in clock [start, stop) cycles (None if none did)."""
+        """Summary of the episodes that ended at learner clock [start, stop) cycles (None if none did)."""
         t = self.table
         rows = t[(t[:, self.END] >= start) & (t[:, self.END] < stop)]
         return self.summary(rows) if rows.shape[0] else None
 
     def episode_window(self, start: int, stop: int) -> dict[str, float]:
-        """Summary of every field's episodes number start..stop-1."""
+        """Summary of every learner's episodes number start..stop-1."""
         t = self.table
         return self.summary(t[(t[:, self.ORDINAL] >= start) & (t[:, self.ORDINAL] < stop)])
 
@@ -202,35 +237,47 @@ def run_sarsa_keepers(
     episodes: int = 0,
     on_step: Callable[[KeepawayRecords], None] | None = None,
 ) -> KeepawayRecords:
-    """Play and learn until every field's clock reaches ``cycles`` or every field has finished
-    ``episodes`` episodes (0 = no such limit), calling ``on_step`` after each env step."""
+    """Play and learn until every learner's clock reaches ``cycles`` or every learner has finished
+    ``episodes`` episodes (0 = no such limit), calling ``on_step`` after each env step.
+
+    Works with either ``sync`` mode of the env: only the fields flagged ``"deciding"`` choose (agent row
+    field * keepers + keeper); the others' actions are ignored by the env.
+    """
     if cycles <= 0 and episodes <= 0:
         raise ValueError("run_sarsa_keepers needs a budget: cycles > 0 or episodes > 0")
     fields, n = env.batch_size[0], env.config.keepers
-    field_index = torch.arange(fields, device=env.device)
+    if records.fields != fields:
+        raise ValueError(f"records of {records.fields} fields for an env of {fields}")
+    every_keeper = torch.arange(n, device=env.device)
     td = env.reset()
-    reward = torch.zeros(fields, device=env.device)  # of the step that led to each decision
+    reward = torch.zeros(fields, device=env.device)  # of the step that led to each field's decision
+    action = torch.zeros(fields, dtype=torch.int64, device=env.device)
     records.advance(td[keys.EPISODE_CYCLES])
 
     def budget_left() -> bool:
-        by_time = cycles > 0 and bool((records.clock < cycles).any())
+        by_time = cycles > 0 and bool((records.learner_clock < cycles).any())
         by_episodes = episodes > 0 and bool((records.episodes < episodes).any())
         return (cycles <= 0 or by_time) and (episodes <= 0 or by_episodes)
 
     while budget_left():
-        keeper = td[keys.KEEPER]
-        learners = field_index * n + keeper
-        action = agent.decide(learners, td[keys.OBSERVATION], td[keys.ACTION_MASK], reward)
-        records.decided(keeper, action)
+        rows = td[keys.DECIDING].nonzero().squeeze(-1)
+        if rows.numel():
+            keeper = td[keys.KEEPER][rows]
+            chosen = agent.decide(
+                rows * n + keeper, td[keys.OBSERVATION][rows], td[keys.ACTION_MASK][rows], reward[rows]
+            )
+            records.decided(rows, keeper, chosen)
+            action = action.index_put((rows,), chosen)
         td[keys.ACTION] = action
         td, td_next = env.step_and_maybe_reset(td)
         after = td["next"]
         ended = after[keys.DONE].view(-1)
         reward = torch.where(ended, 0.0, after[keys.REWARD].view(-1))  # a restarted field's keeper starts
+        records.advance(after[keys.EPISODE_CYCLES])
         if bool(ended.any()):
-            rows = ended.nonzero().squeeze(-1)
-            every_keeper = (rows.unsqueeze(1) * n + torch.arange(n, device=env.device)).reshape(-1)
-            agent.end_episode(every_keeper, after[keys.EPISODE_END_REWARDS][rows].reshape(-1))
+            done_rows = ended.nonzero().squeeze(-1)
+            slots = (done_rows.unsqueeze(1) * n + every_keeper).reshape(-1)
+            agent.end_episode(slots, after[keys.EPISODE_END_REWARDS][done_rows].reshape(-1))
             records.finish(ended, after[keys.EPISODE_CYCLES])
         td = td_next
         records.advance(td[keys.EPISODE_CYCLES])
@@ -247,6 +294,11 @@ def check_sarsa(cfg: DictConfig) -> None:
     require_choice(cfg, "domain.name", ("keepaway",))
     require_choice(cfg, "agent.name", ("sarsa",))
     learners = require_int(cfg, "agent.learners", 1, 100_000)
+    per_learner = require_int(cfg, "agent.fields_per_learner", 1, 100_000)
+    if learners * per_learner > 1_000_000:
+        raise ConfigError(
+            f"agent.learners={learners} x agent.fields_per_learner={per_learner} fields is over 1,000,000"
+        )
     hours = require_float(cfg, "agent.hours", 0.0, 10_000.0)
     episodes = require_int(cfg, "agent.episodes", 0)
     if hours == 0 and episodes == 0:
@@ -268,11 +320,18 @@ def check_sarsa(cfg: DictConfig) -> None:
     require_int(cfg, "agent.log_episodes", 1)
     require_float(cfg, "agent.checkpoint_minutes", 0.01)
     tables = learners if share else learners * keepers
-    gib = tables * 2**bits * 4 / 2**30
+    slots = learners * per_learner * keepers  # pending action and traces per field and keeper
+    max_traces = OmegaConf.select(cfg, "agent.max_traces")
+    lambda_, gamma, min_trace = float(cfg.agent["lambda"]), float(cfg.agent.gamma), float(cfg.agent.min_trace)
+    capacity = (
+        int(max_traces) if max_traces is not None else trace_capacity(active, gamma * lambda_, min_trace)
+    )
+    gib = (tables * 2**bits * 4 + slots * capacity * 12) / 2**30
     if gib > MAX_TABLE_GIB:
         raise ConfigError(
-            f"agent.learners={learners} fields need {tables} tables of 2^{bits} weights, {gib:.1f} GiB "
-            f"(limit {MAX_TABLE_GIB:.0f}); lower agent.learners or agent.table_bits"
+            f"agent.learners={learners} x agent.fields_per_learner={per_learner} need {tables} tables of "
+            f"2^{bits} weights and {slots} x {capacity} trace slots, {gib:.1f} GiB (limit "
+            f"{MAX_TABLE_GIB:.0f}); lower agent.learners, agent.fields_per_learner or agent.table_bits"
         )
 
 
@@ -281,6 +340,7 @@ def _agent_from_config(cfg: DictConfig, config: KeepawayConfig, device: torch.de
     return make_sarsa_keepers(
         config,
         a.learners,
+        fields_per_learner=a.fields_per_learner,
         alpha=a.alpha,
         epsilon=a.epsilon,
         lambda_=a["lambda"],
@@ -309,7 +369,8 @@ def train_sarsa(cfg: DictConfig, run_dir: Path, checkpoint: dict[str, Any] | Non
     config = keepaway_config(cfg)
     device = make_device(cfg)
     agent = _agent_from_config(cfg, config, device)
-    records = KeepawayRecords(a.learners, config.keepers)
+    fields = a.learners * a.fields_per_learner
+    records = KeepawayRecords(fields, config.keepers, a.fields_per_learner)
     history: list[dict[str, float]] = []
     resumes = time_windows = episode_windows = 0  # windows: points of the two curves closed so far
     if checkpoint is not None:
@@ -320,11 +381,11 @@ def train_sarsa(cfg: DictConfig, run_dir: Path, checkpoint: dict[str, Any] | Non
         history = list(checkpoint["history"])
         resumes = int(state["resumes"]) + 1
         time_windows, episode_windows = int(state["time_windows"]), int(state["episode_windows"])
-    env = KeepawayEnv(a.learners, config, device=device, seed=int(cfg.seed) + 1_000_003 * resumes)
+    env = KeepawayEnv(fields, config, device=device, seed=int(cfg.seed) + 1_000_003 * resumes, sync="any")
 
     window = max(1, round(a.log_minutes * CYCLES_PER_MINUTE))
     every = max(1, round(a.checkpoint_minutes * CYCLES_PER_MINUTE))
-    saved_at = int(records.clock.min())
+    saved_at = int(records.learner_clock.min())
     logger = make_run_logger(
         cfg, str(run_dir / "tensorboard"), purge_step=_seconds(time_windows * window) + 1 if resumes else None
     )
@@ -337,9 +398,10 @@ def train_sarsa(cfg: DictConfig, run_dir: Path, checkpoint: dict[str, Any] | Non
         logger.text("hyperparameters", markdown_table(flatten_config(cfg)))
         logger.text(
             "axes",
-            "by_hours/*: step = simulated seconds per field; by_episodes/* (run by_episodes): step = "
-            f"episodes per field. Every point: mean over {a.learners} fields of each field's mean, "
-            "with its 95 % interval.",
+            "by_hours/*: step = simulated seconds per learner (its fields' experience summed); "
+            "by_episodes/* (run by_episodes): step = episodes per learner. Every point: mean over "
+            f"{a.learners} learners ({a.fields_per_learner} fields each) of each learner's mean episode "
+            "duration, with its 95 % interval.",
         )
     metrics_file = run_dir / "metrics.jsonl"
     ckpt_path = run_dir / "checkpoints" / LAST
@@ -367,7 +429,8 @@ def train_sarsa(cfg: DictConfig, run_dir: Path, checkpoint: dict[str, Any] | Non
                     "tilings": agent.coder.tilings,
                     "size": agent.coder.size,
                     "num_actions": agent.coder.num_actions,
-                    "learners": "field * keepers + keeper",
+                    "learners": "(field // fields_per_learner) * keepers + keeper",
+                    "fields_per_learner": a.fields_per_learner,
                 },
                 "domain_config": asdict(config),
             },
@@ -378,9 +441,10 @@ def train_sarsa(cfg: DictConfig, run_dir: Path, checkpoint: dict[str, Any] | Non
         with metrics_file.open("a") as f:
             f.write(json.dumps(record) + "\n")
 
-    desc = f"Sarsa keepers {config.keepers}v{config.takers}, {a.learners} fields"
+    teams = f"{a.learners} learners x {a.fields_per_learner} fields"
+    desc = f"Sarsa keepers {config.keepers}v{config.takers}, {teams}"
     if budget_cycles > 0:
-        initial, total, unit = _seconds(int(records.clock.min())), round(a.hours * 3600), "sim s"
+        initial, total, unit = _seconds(int(records.learner_clock.min())), round(a.hours * 3600), "sim s"
     else:
         initial, total, unit = int(records.episodes.min()), a.episodes, "episode"
     bar = tqdm(total=total, initial=initial, unit=unit, desc=desc, dynamic_ncols=True, mininterval=1.0)
@@ -388,7 +452,7 @@ def train_sarsa(cfg: DictConfig, run_dir: Path, checkpoint: dict[str, Any] | Non
 
     def on_step(rec: KeepawayRecords) -> None:
         nonlocal time_windows, episode_windows, saved_at
-        slowest = int(rec.clock.min())
+        slowest = int(rec.learner_clock.min())
         while slowest >= (time_windows + 1) * window:
             stats = rec.time_window(time_windows * window, (time_windows + 1) * window)
             time_windows += 1
@@ -397,7 +461,7 @@ def train_sarsa(cfg: DictConfig, run_dir: Path, checkpoint: dict[str, Any] | Non
             wall = time.perf_counter() - start_wall
             stats["field_cycles_per_s"] = (int(rec.clock.sum()) - start_clock) / max(wall, 1e-9)
             for k in range(rec.keepers):
-                stats[f"decisions_total_keeper{k}"] = float(rec.table[:, 5 + k].sum()) / rec.fields
+                stats[f"decisions_total_keeper{k}"] = float(rec.table[:, 5 + k].sum()) / rec.learners
             end = time_windows * window
             logger.scalars(stats, _seconds(end), prefix="by_hours/")
             write({"axis": "hours", "hours": end / CYCLES_PER_HOUR, "sim_seconds": _seconds(end), **stats})

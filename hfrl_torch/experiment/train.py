@@ -146,7 +146,7 @@ def train(cfg: DictConfig) -> TrainResult:
     elif final and agent == "sarsa":
         low, high = final["episode_s_ci95_low"], final["episode_s_ci95_high"]
         lines.append(
-            f"Done: after {final['hours']:.2f} simulated hours on each of {cfg.agent.learners} fields, "
+            f"Done: after {final['hours']:.2f} simulated hours per learner ({cfg.agent.learners} learners), "
             f"episodes last {final['episode_s_mean']:.2f} s (95% CI {low:.2f}..{high:.2f}; last "
             f"{cfg.agent.log_minutes:g} simulated minutes, exploring)"
         )

@@ -15,6 +15,8 @@ from hfrl_torch.envs.keepaway import (
     KeepawayConfig,
     KeepawayEnv,
     KeepawaySimulator,
+    hand_coded_actions,
+    make_benchmark_policy,
     play_benchmark_policy,
     register_keepaway,
     render_rgb,
@@ -22,29 +24,127 @@ from hfrl_torch.envs.keepaway import (
 )
 from hfrl_torch.envs.keepaway.referee import END_TAKEN
 
+torch.set_num_threads(1)
+SYNCS = ("all", "any")
 
+
+@pytest.mark.parametrize("sync", SYNCS)
 @pytest.mark.parametrize(
     "options", [{}, {"preset": "rcss19", "decision_period_cycles": 5}, {"keepers": 4, "takers": 3}]
 )
-def test_check_env_specs(options: dict) -> None:
-    check_env_specs(KeepawayEnv(3, seed=1, **options))
+def test_check_env_specs(options: dict, sync: str) -> None:
+    check_env_specs(KeepawayEnv(3, seed=1, sync=sync, **options))
 
 
-def test_partial_reset_changes_only_flagged_fields() -> None:
-    env = KeepawayEnv(4, seed=2)
+@pytest.mark.parametrize("sync", SYNCS)
+def test_partial_reset_changes_only_flagged_fields(sync: str) -> None:
+    env = KeepawayEnv(4, seed=2, sync=sync)
     td = env.reset()
     td = env.rand_step(td)
     before = env.sim.state.clone()
     obs_before = td["next", keys.OBSERVATION].clone()
+    deciding_before = td["next", keys.DECIDING].clone()
     flags = torch.tensor([True, False, True, False]).unsqueeze(-1)
     after = env.reset(td["next"].clone().set(keys.RESET, flags))
     state = env.sim.state
     for i in (1, 3):
         assert torch.equal(state.pos[i], before.pos[i])
         assert torch.equal(after[keys.OBSERVATION][i], obs_before[i])
+        assert after[keys.DECIDING][i].item() == deciding_before[i].item()
     for i in (0, 2):
         assert not torch.equal(state.pos[i], before.pos[i])
         assert not after[keys.DONE][i].item()
+        # "all": run to the keeper's first decision inside reset; "any": not deciding yet, no cycle run
+        assert after[keys.DECIDING][i].item() == (sync == "all")
+        assert (after[keys.EPISODE_CYCLES][i].item() == 0) == (sync == "any")
+
+
+def test_any_mode_steps_one_cycle_and_ignores_other_fields_actions() -> None:
+    env = KeepawayEnv(6, seed=8, sync="any")
+    td = env.reset()
+    assert not td[keys.DECIDING].any()  # nobody has the ball at the start
+    gen = torch.Generator().manual_seed(1)
+    saw_partial = False
+    for _ in range(60):
+        deciding = td[keys.DECIDING].clone()
+        td.set(keys.ACTION, torch.randint(0, 3, (6,), generator=gen))
+        twin = KeepawayEnv(6, seed=8, sync="any")
+        twin.sim.state, twin.sim.generator = env.sim.state.clone(), _copy_generator(env.sim.generator)
+        twin._done, twin._outputs = env._done.clone(), {k: v.clone() for k, v in env._outputs.items()}
+        other = td.clone().set(keys.ACTION, torch.where(deciding, td[keys.ACTION], (td[keys.ACTION] + 1) % 3))
+        out, twin_out = env.step(td)["next"], twin.step(other)["next"]
+        assert torch.equal(out[keys.OBSERVATION], twin_out[keys.OBSERVATION])  # other fields' actions unread
+        alive = ~out[keys.DONE].view(-1)
+        assert bool((out[keys.STEP_CYCLES][alive] == out[keys.STEP_CYCLES][alive].max()).all())
+        assert bool((out[keys.REWARD].view(-1)[alive & ~out[keys.DECIDING]] == 0).all())
+        saw_partial |= bool(out[keys.DECIDING].any() & ~out[keys.DECIDING][alive].all())
+        if out[keys.DONE].any():
+            out = env.reset(out.clone().set(keys.RESET, out[keys.DONE].clone()))
+        td = out
+    assert saw_partial
+
+
+def _copy_generator(generator: torch.Generator) -> torch.Generator:
+    copy = torch.Generator(device=generator.device)
+    copy.set_state(generator.get_state())
+    return copy
+
+
+def _first_episodes(sync: str, fields: int) -> tuple[list[list[tuple]], list[tuple[int, int]]]:
+    """Each field's decisions (keeper, cycle, state variables) and (duration, cause) of its first
+    episode, Hand-coded keepers, no movement noise."""
+    env = KeepawayEnv(fields, seed=3, sync=sync, movement_noise=False)
+    td = env.reset()
+    decisions: list[list[tuple]] = [[] for _ in range(fields)]
+    ends: list[tuple[int, int] | None] = [None] * fields
+    while not all(ends):
+        for b in td[keys.DECIDING].nonzero().flatten().tolist():
+            obs = tuple(td[keys.OBSERVATION][b].tolist())
+            decisions[b].append((int(td[keys.KEEPER][b]), int(td[keys.EPISODE_CYCLES][b]), obs))
+        td.set(keys.ACTION, hand_coded_actions(td[keys.OBSERVATION], 3, 2))
+        td = env.step(td)["next"]
+        for b in td[keys.DONE].view(-1).nonzero().flatten().tolist():
+            if ends[b] is None:
+                ends[b] = (int(td[keys.EPISODE_CYCLES][b]), int(td[keys.END_CAUSE][b]))
+    return decisions, ends
+
+
+def test_any_mode_plays_the_same_episodes_as_all_mode() -> None:
+    """Without movement noise the episodes after the first reset are fixed by the seed: both modes
+    must give every field the same decisions and the same episode, cycle for cycle."""
+    all_decisions, all_ends = _first_episodes("all", 6)
+    any_decisions, any_ends = _first_episodes("any", 6)
+    assert any_ends == all_ends
+    assert any_decisions == all_decisions
+    assert len({d for d, _ in all_ends}) > 3
+
+
+def _durations(sync: str, fields: int, per_field: int) -> torch.Tensor:
+    """The first ``per_field`` episode durations (cycles) of every field, Random keepers."""
+    env = KeepawayEnv(fields, seed=4, sync=sync)
+    choose = make_benchmark_policy("random", 3, 2, torch.Generator().manual_seed(4))
+    td = env.reset()
+    count = torch.zeros(fields, dtype=torch.long)
+    kept: list[float] = []
+    while int(count.min()) < per_field:
+        td.set(keys.ACTION, choose(td[keys.OBSERVATION]))
+        td, td_next = env.step_and_maybe_reset(td)
+        done = td["next", keys.DONE].view(-1)
+        kept += td["next", keys.EPISODE_CYCLES][done & (count < per_field)].tolist()
+        count += done.long()
+        td = td_next
+    return torch.tensor(kept, dtype=torch.float64)
+
+
+def test_any_mode_episode_durations_match_all_mode() -> None:
+    """With movement noise the simulator's one generator is drawn in a different order, so the
+    episodes differ: their durations must agree in distribution (means within 4 standard errors,
+    and the spreads within 30 %)."""
+    a, b = _durations("all", 48, 2), _durations("any", 48, 2)
+    assert a.numel() == b.numel() == 96
+    z = (a.mean() - b.mean()) / (a.var() / a.numel() + b.var() / b.numel()).sqrt()
+    assert abs(float(z)) < 4.0, (float(a.mean()), float(b.mean()))
+    assert 0.7 < float(a.std() / b.std()) < 1.3
 
 
 def _episode(seed: int) -> list[tuple[int, float, int]]:
@@ -66,36 +166,60 @@ def test_same_seed_same_episode() -> None:
     assert _episode(5) != _episode(6)
 
 
-def test_rewards_count_cycles_per_keeper() -> None:
-    env = KeepawayEnv(4, seed=3)
+@pytest.mark.parametrize("sync,steps", [("all", 30), ("any", 400)])
+def test_rewards_count_cycles_per_keeper(sync: str, steps: int) -> None:
+    """Deciding fields get cycles since that keeper's last decision, ended fields the end rewards,
+    other fields 0; so each keeper's rewards add up to the episode's length after its first decision."""
+    env = KeepawayEnv(4, seed=3, sync=sync)
     td = env.reset()
-    last = {b: {int(td[keys.KEEPER][b]): int(td[keys.EPISODE_CYCLES][b])} for b in range(4)}
-    checked = ended = 0
+    last: dict[int, dict[int, int]] = {b: {} for b in range(4)}  # field -> keeper -> cycle of last decision
+    first: dict[int, dict[int, int]] = {b: {} for b in range(4)}
+    total: dict[int, dict[int, float]] = {b: {} for b in range(4)}  # rewards received after the first
+
+    def note_decisions(td) -> None:
+        for b in td[keys.DECIDING].nonzero().flatten().tolist():
+            k, cycles = int(td[keys.KEEPER][b]), int(td[keys.EPISODE_CYCLES][b])
+            first[b].setdefault(k, cycles)
+            total[b].setdefault(k, 0.0)
+            last[b][k] = cycles
+
+    note_decisions(td)
+    checked = ended = idle = 0
     gen = torch.Generator().manual_seed(0)
-    for _ in range(30):
+    for _ in range(steps):
         td.set(keys.ACTION, torch.randint(0, 3, (4,), generator=gen))
         out = env.step(td)["next"]
         for b in range(4):
             cycles = int(out[keys.EPISODE_CYCLES][b])
+            reward = out[keys.REWARD][b].item()
             if bool(out[keys.DONE][b]):
                 end_rewards = out[EPISODE_END_REWARDS][b]
                 for k in range(3):
                     assert end_rewards[k].item() == (cycles - last[b][k] if k in last[b] else 0)
-                assert out[keys.REWARD][b].item() == cycles - max(last[b].values())
+                    if k in first[b]:
+                        assert total[b][k] + end_rewards[k].item() == cycles - first[b][k]
+                assert reward == cycles - max(last[b].values())
                 assert out[keys.END_CAUSE][b].item() in (1, 2)
+                assert not out[keys.DECIDING][b].item()
                 ended += 1
-            else:
+            elif bool(out[keys.DECIDING][b]):
                 k = int(out[keys.KEEPER][b])
-                assert out[keys.REWARD][b].item() == cycles - last[b].get(k, cycles)
-                last[b][k] = cycles
+                assert reward == cycles - last[b].get(k, cycles)
+                total[b][k] = total[b].get(k, 0.0) + reward
                 checked += 1
+            else:
+                assert reward == 0.0
+                idle += 1
+        note_decisions(out)
         if out[keys.DONE].any():
             done = out[keys.DONE].clone()
             out = env.reset(out.clone().set(keys.RESET, done))
             for b in done.squeeze(-1).nonzero().flatten().tolist():
-                last[b] = {int(out[keys.KEEPER][b]): int(out[keys.EPISODE_CYCLES][b])}
+                last[b], first[b], total[b] = {}, {}, {}
+            note_decisions(out)
         td = out
-    assert checked > 20 and ended >= 1
+    assert checked > 20 and ended >= (1 if sync == "all" else 4)
+    assert (idle > 0) == (sync == "any")
 
 
 def test_decision_period_makes_holds_last_five_cycles() -> None:

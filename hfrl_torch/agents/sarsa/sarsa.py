@@ -15,7 +15,9 @@ reference keepaway players' ``LinearSarsaAgent`` implements it:
 
 Each row of a call names a learner (``learners`` [M], distinct); a learner has its pending action and
 Q, its own traces and a weight table of the :class:`TileCoding` (its own by default; learners may
-share one, as the reference's "hive mind" keepers share theirs).
+share one, as the reference's "hive mind" keepers share theirs). Rows of one call that share a table
+are updated from the same weights and their changes summed (``index_add_``), not applied one after the
+other.
 
 Traces are sparse: per learner a bounded list of ``max_traces`` (tile index, value) slots, the
 vectorised counterpart of the reference's ``nonzeroTraces`` list (``RL_MAX_NONZERO_TRACES`` =
@@ -229,19 +231,29 @@ class SarsaLambda:
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Clear the traces of the other available actions' tiles and set the chosen action's to 1.
 
-        Slots are matched by tile index per row (keys offset by row * size, so one ``isin`` serves
-        every row); the chosen tiles are deduplicated (hash collisions inside F_a) and merged in,
-        keeping the ``capacity`` largest traces.
+        Slots are matched by tile index per row (a row-wise sort of the tiles to clear and a
+        ``searchsorted`` per slot); the chosen tiles are deduplicated (hash collisions inside F_a) and
+        merged in, keeping the ``capacity`` largest traces. When gamma * lambda < min_trace (the
+        thesis's lambda = 0) every older trace has just been dropped, so the chosen tiles alone remain.
         """
         m, capacity = index.shape
-        offset = (torch.arange(m, device=index.device) * self.coder.size).unsqueeze(1)
-        slot_keys = index + offset
-        other_keys = torch.where(others.unsqueeze(-1), tiles + offset.unsqueeze(-1), -1)
-        drop = torch.isin(slot_keys, other_keys) | torch.isin(slot_keys, chosen + offset)
-        value = torch.where(drop, 0.0, value)
-        fresh = chosen.sort(dim=1).values
+        # rows sorted by one flat sort of keys offset by row * size (about twice as fast as a row-wise sort)
+        offset = (torch.arange(m, device=chosen.device) * self.coder.size).unsqueeze(1)
+        fresh = (chosen + offset).view(-1).sort().values.view(m, -1) - offset
         first = torch.ones_like(fresh, dtype=torch.bool)
         first[:, 1:] = fresh[:, 1:] != fresh[:, :-1]
+        if self.gamma * self.lambda_ < self.min_trace:  # no trace survives the decay: skip the matching
+            pad = capacity - fresh.shape[1]
+            new_value = first.to(value.dtype)
+            if pad:
+                fresh = torch.cat((fresh, fresh.new_zeros(m, pad)), dim=1)
+                new_value = torch.cat((new_value, new_value.new_zeros(m, pad)), dim=1)
+            return fresh, new_value
+        clear = torch.where(others.unsqueeze(-1), tiles, -1).reshape(m, -1)
+        clear = torch.cat((clear, chosen), dim=1).sort(dim=1).values  # [M, (A + 1) N], rows ascending
+        at = torch.searchsorted(clear, index).clamp(max=clear.shape[1] - 1)
+        drop = clear.gather(1, at) == index
+        value = torch.where(drop, 0.0, value)
         merged_index = torch.cat((index, fresh), dim=1)
         merged_value = torch.cat((value, first.to(value.dtype)), dim=1)
         kept = merged_value.topk(capacity, dim=1, sorted=False).indices

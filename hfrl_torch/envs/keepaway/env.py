@@ -1,11 +1,15 @@
 """Keepaway as a batched TorchRL environment with SMDP steps.
 
-One ``step`` hands the chosen macro-actions to the fields' keepers with the ball and then
-simulates 100 ms cycles (all fields in lock-step; a field that reaches its next decision or
-the end of its episode waits for the others) until every field's keeper with the ball must
-decide again. The reward of a step is the number of cycles since the *deciding* keeper's
-previous decision (0 at its first decision), so each keeper's rewards add up to the time the
-ball stayed in play after its first decision.
+``sync="all"`` (default): one ``step`` hands the chosen macro-actions to the fields' keepers with
+the ball and then simulates 100 ms cycles (all fields in lock-step; a field that reaches its next
+decision or the end of its episode waits for the others) until every field's keeper with the ball
+must decide again. ``sync="any"``: one ``step`` applies the actions of the *deciding* fields and
+simulates every alive field until at least one must decide or ends (usually one cycle), so no field
+idles; ``"deciding"`` [B] says which fields' observation is a real decision.
+
+The reward of a step is, on deciding fields, the number of cycles since the deciding keeper's
+previous decision (0 at its first decision), so each keeper's rewards add up to the time the ball
+stayed in play after its first decision; 0 on fields that neither decide nor end.
 
 At the end of an episode, ``episode_end_rewards`` [B, n] gives every keeper's cycles since its
 own last decision (0 for keepers that never decided): what RLendEpisode needs for each keeper.
@@ -25,6 +29,7 @@ from hfrl_torch.envs.keepaway.simulator import KeepawaySimulator
 
 EPISODE_END_REWARDS = keys.EPISODE_END_REWARDS
 STEP_CYCLES = keys.STEP_CYCLES
+SYNC_MODES = ("all", "any")
 
 _OUTPUT_KEYS = (
     keys.OBSERVATION,
@@ -34,6 +39,7 @@ _OUTPUT_KEYS = (
     keys.END_CAUSE,
     EPISODE_END_REWARDS,
     STEP_CYCLES,
+    keys.DECIDING,
 )
 
 
@@ -51,6 +57,11 @@ class KeepawayEnv(EnvBase):
     :param device: torch device of the simulator and the tensordicts.
     :param seed: seed of the simulator's generator.
     :param max_cycles_per_step: safety bound on the cycles simulated in one step.
+    :param sync: ``"all"``: a step runs until every alive field must decide (reset runs a restarted
+        field to its first decision); ``"any"``: a step runs until at least one alive field must
+        decide or ends, and a restarted field is "not deciding" until its keeper first must decide.
+        ``"deciding"`` [B] marks the fields whose observation, keeper and action mask are a decision
+        now (every alive field in ``"all"`` mode); actions of the other fields are ignored.
     """
 
     batch_locked = True
@@ -63,14 +74,18 @@ class KeepawayEnv(EnvBase):
         device: str | torch.device = "cpu",
         seed: int = 0,
         max_cycles_per_step: int = 100_000,
+        sync: str = "all",
         **config_overrides: object,
     ) -> None:
+        if sync not in SYNC_MODES:
+            raise ValueError(f"sync must be one of {SYNC_MODES}, got {sync!r}")
         config = config if config is not None else KeepawayConfig()
         if config_overrides:
             config = config.replace(**config_overrides)
         super().__init__(device=device, batch_size=torch.Size([batch_size]))
         self.config = config
         self.max_cycles_per_step = max_cycles_per_step
+        self.sync = sync
         self.sim = KeepawaySimulator(batch_size, config, device=self.device, seed=seed)
         self._make_specs()
         self._outputs = self._blank_outputs()
@@ -90,6 +105,7 @@ class KeepawayEnv(EnvBase):
                 keys.END_CAUSE: Categorical(3, shape=(b,), dtype=torch.int64, device=self.device),
                 EPISODE_END_REWARDS: Unbounded(shape=(b, n), dtype=torch.float32, device=self.device),
                 STEP_CYCLES: Unbounded(shape=(b,), dtype=torch.int64, device=self.device),
+                keys.DECIDING: Categorical(2, shape=(b,), dtype=torch.bool, device=self.device),
             },
             shape=(b,),
             device=self.device,
@@ -142,7 +158,8 @@ class KeepawayEnv(EnvBase):
         return ended, cause, cycles
 
     def _write_decisions(self, fields: torch.Tensor) -> None:
-        """Store the observation of the keeper with the ball on ``fields`` [B]."""
+        """Store the observation of the keeper with the ball on ``fields`` [B], and which fields
+        (alive, keeper with the ball free to choose) decide now."""
         dec = self.sim.decision()
         obs, _ = self.sim.observe(dec.holder)
         out = self._outputs
@@ -151,6 +168,7 @@ class KeepawayEnv(EnvBase):
         out[keys.KEEPER] = torch.where(f, dec.holder, out[keys.KEEPER])
         out[keys.ACTION_MASK] = torch.where(f[:, None], True, out[keys.ACTION_MASK])
         out[keys.EPISODE_CYCLES] = torch.where(f, self.sim.state.episode_cycles, out[keys.EPISODE_CYCLES])
+        out[keys.DECIDING] = ~self._done & dec.must_decide
 
     def _result(self, reward: torch.Tensor | None) -> TensorDict:
         done = self._done.unsqueeze(-1)
@@ -174,34 +192,44 @@ class KeepawayEnv(EnvBase):
         else:
             mask = torch.ones(self.batch_size, dtype=torch.bool, device=self.device)
         self.sim.reset(mask)
-        self._run_until_decision(mask, restart_ended=True)
+        if self.sync == "all":  # "any": the restarted fields reach their first decision in later steps
+            self._run_until_decision(mask, restart_ended=True)
         out = self._outputs
         out[keys.END_CAUSE] = torch.where(mask, 0, out[keys.END_CAUSE])
         out[EPISODE_END_REWARDS] = torch.where(mask[:, None], 0.0, out[EPISODE_END_REWARDS])
         out[STEP_CYCLES] = torch.where(mask, 0, out[STEP_CYCLES])
-        self._write_decisions(mask)
         self._done = self._done & ~mask
+        self._write_decisions(mask)
         return self._result(None)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         sim = self.sim
         actions = tensordict.get(keys.ACTION).reshape(-1).to(self.device).long()
         alive = ~self._done
+        # the simulator reads an action only where the keeper must decide: in both modes exactly the
+        # fields flagged "deciding" by the previous step or reset, so other fields' actions are ignored
         first = sim.step(actions, active=alive)
         ended, cause = first.ended.clone(), first.end_cause.clone()
-        later_ended, later_cause, cycles = self._run_until_decision(alive & ~ended, restart_ended=False)
+        if self.sync == "all":
+            later_ended, later_cause, cycles = self._run_until_decision(alive & ~ended, restart_ended=False)
+        else:
+            later_ended, later_cause, cycles = self._run_until_any_decision(alive & ~ended, bool(ended.any()))
         ended |= later_ended
         cause = torch.where(later_ended, later_cause, cause)
         cycles = cycles + alive.long()
 
         state = sim.state
-        holder = sim.decision().holder
-        last = state.last_decision.gather(1, holder.unsqueeze(-1)).squeeze(-1)
+        dec = sim.decision()
+        deciding = alive & ~ended & dec.must_decide
+        last = state.last_decision.gather(1, dec.holder.unsqueeze(-1)).squeeze(-1)
         decision_reward = torch.where(last >= 0, state.episode_cycles - last, torch.zeros_like(last))
         latest = state.last_decision.max(-1).values
         end_reward = torch.where(latest >= 0, state.episode_cycles - latest, state.episode_cycles)
-        reward = torch.where(ended, end_reward, torch.where(alive, decision_reward, torch.zeros_like(last)))
+        reward = torch.where(
+            ended, end_reward, torch.where(deciding, decision_reward, torch.zeros_like(last))
+        )
 
+        self._done = self._done | ended
         self._write_decisions(alive)
         out = self._outputs
         out[keys.END_CAUSE] = torch.where(ended, cause, torch.where(alive, 0, out[keys.END_CAUSE]))
@@ -210,8 +238,34 @@ class KeepawayEnv(EnvBase):
             ended[:, None], end_rewards, torch.where(alive[:, None], 0.0, out[EPISODE_END_REWARDS])
         )
         out[STEP_CYCLES] = torch.where(alive, cycles, 0)
-        self._done = self._done | ended
         return self._result(reward)
+
+    def _run_until_any_decision(
+        self, running: torch.Tensor, stop: bool
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``sync="any"``: simulate the ``running`` fields until one of them must decide or ends
+        (nothing if ``stop``, i.e. a field already ended this step).
+
+        :returns: which fields ended, why, and the cycles simulated [B].
+        """
+        sim = self.sim
+        running = running.clone()
+        ended = torch.zeros_like(running)
+        cause = torch.zeros(running.shape, dtype=torch.int64, device=self.device)
+        cycles = torch.zeros(running.shape, dtype=torch.int64, device=self.device)
+        if stop:
+            return ended, cause, cycles
+        for _ in range(self.max_cycles_per_step):
+            if bool((running & sim.decision().must_decide).any() | ~running.any()):
+                return ended, cause, cycles
+            out = sim.step(None, active=running)  # no running field must decide: no action is read
+            cycles += running
+            ended |= out.ended
+            cause = torch.where(out.ended, out.end_cause, cause)
+            running &= ~out.ended
+            if bool(out.ended.any()):
+                return ended, cause, cycles
+        raise RuntimeError("keepaway: no decision within max_cycles_per_step cycles")
 
     def _set_seed(self, seed: int | None) -> None:
         if seed is not None:
