@@ -166,7 +166,8 @@ class TileCoding(nn.Module):
 
     def forward(self, learners: torch.Tensor, tiles: torch.Tensor) -> torch.Tensor:
         """Sums ``[M, ...]`` of learner ``learners[m]``'s weights over ``tiles`` ``[M, ..., N]``."""
-        return self.weight.view(-1)[self._flat(learners, tiles)].sum(-1)
+        flat = self._flat(learners, tiles)
+        return self.weight.view(-1).index_select(0, flat.reshape(-1)).view(flat.shape).sum(-1)
 
     @torch.no_grad()
     def add_(self, learners: torch.Tensor, indices: torch.Tensor, values: torch.Tensor) -> None:
