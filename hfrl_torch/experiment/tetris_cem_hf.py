@@ -171,7 +171,7 @@ def tetris_frame(td: TensorDictBase, episode: int, weight: float) -> dict[str, A
     }
 
 
-def env_only_match_rate(games_matches: torch.Tensor, pieces: torch.Tensor) -> float | None:
+def games_match_rate(games_matches: torch.Tensor, pieces: torch.Tensor) -> float | None:
     """m over a set of games: placements where argmax H^ = argmax R / placements (None: no placement)."""
     total = int(pieces.sum())
     return int(games_matches.sum()) / total if total else None
@@ -292,7 +292,7 @@ def train_cem_hf(cfg: DictConfig, run_dir: Path, checkpoint: dict | None) -> dic
             # 3. test the fused mean policy; m from its placements
             eval_lines = cem.evaluate_mean()
             assert rollout.last is not None
-            m = env_only_match_rate(rollout.last.matches, rollout.last.pieces)
+            m = games_match_rate(rollout.last.matches, rollout.last.pieces)
             ev = summarize(eval_lines, floor=0.0)
 
             # 4. the weight's episode ends: eq. 4.4, annealing
