@@ -183,21 +183,21 @@ def check_tamer(cfg: DictConfig) -> None:
     check_human(cfg)
 
 
-def make_weight_schedule(cfg: DictConfig) -> WeightSchedule:
-    """The weight on H^ of ``fusion``: the trust factor (eq. 4.4), annealed (Knox & Stone) or fixed."""
+def make_weight_schedule(cfg: DictConfig, learners: int = 1) -> WeightSchedule:
+    """The weight on H^ of ``fusion`` for each of ``learners``: the trust factor (eq. 4.4), annealed
+    (Knox & Stone) or fixed."""
     name = require_choice(cfg, "fusion.name", FUSIONS)
     if name in ("none", "human_only"):
-        return ConstantWeight(0.0)
+        return ConstantWeight([0.0] * learners)
     if name == "annealed":
-        return AnnealedWeight(
-            require_float(cfg, "fusion.weight", 0.0), require_float(cfg, "fusion.factor", 1e-9, 1.0)
-        )
+        w0 = require_float(cfg, "fusion.weight", 0.0)
+        return AnnealedWeight([w0] * learners, require_float(cfg, "fusion.factor", 1e-9, 1.0))
     weight = OmegaConf.select(cfg, "fusion.weight")
     if weight == "trust":
-        return TrustWeight.from_initial(require_float(cfg, "fusion.initial_trust", 0.0))
+        return TrustWeight.from_initial(require_float(cfg, "fusion.initial_trust", 0.0), learners)
     if isinstance(weight, str):
         raise ConfigError(f"fusion.weight={weight!r} is invalid; allowed: trust, or a number >= 0")
-    return ConstantWeight(require_float(cfg, "fusion.weight", 0.0))
+    return ConstantWeight([require_float(cfg, "fusion.weight", 0.0)] * learners)
 
 
 def fusion_normalises(cfg: DictConfig) -> bool:

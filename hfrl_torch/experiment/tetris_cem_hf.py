@@ -152,13 +152,9 @@ def tetris_frame(td: TensorDictBase, episode: int, weight: float) -> dict[str, A
         if int(td["next", keys.LINES].sum()) == int(td[keys.LINES].sum())
         else []
     )
-    piece = PIECE_NAMES[int(td[keys.PIECE][0])]
+    p, a = int(td[keys.PIECE][0]), int(td[keys.ACTION][0])
     table = placement_table(before.shape[1])
-    a = int(td[keys.ACTION][0])
-    column, orient = (
-        int(table.column[int(td[keys.PIECE][0]), a]),
-        int(table.orient[int(td[keys.PIECE][0]), a]),
-    )
+    column, orient = int(table.column[p, a]), int(table.orient[p, a])
     return {
         "type": "tetris",
         "board": after.to(torch.int64).tolist(),
@@ -166,7 +162,7 @@ def tetris_frame(td: TensorDictBase, episode: int, weight: float) -> dict[str, A
         "lines": int(td["next", keys.LINES].sum()),
         "pieces": int(td["next", keys.PIECES_PLACED].sum()),
         "episode": episode,
-        "action": f"{piece} at column {column + 1}, rotation {orient}",
+        "action": f"{PIECE_NAMES[p]} at column {column + 1}, rotation {orient}",
         "text": f"watching you (trust in your feedback: {weight:.2f})",
     }
 
@@ -258,7 +254,7 @@ def train_cem_hf(cfg: DictConfig, run_dir: Path, checkpoint: dict | None) -> dic
         while cem.iteration < cfg.agent.iterations:
             t = cem.iteration
             t0 = time.perf_counter()
-            weight = float(schedule.value(t).reshape(-1)[0]) if scheme not in ("none", "human_only") else 0.0
+            weight = float(schedule.value(t).reshape(-1)[0])  # 0 for none and human_only
 
             # 1. the trainer watches the fused mean policy; H^ learns
             env.transform.schedule = ConstantWeight(weight)
@@ -318,9 +314,7 @@ def train_cem_hf(cfg: DictConfig, run_dir: Path, checkpoint: dict | None) -> dic
                     "feedback/trainer_present": float(watched["given"] > 0),
                     "feedback/learned_total": float(agent.applied.sum()),
                     "fusion/weight": weight,
-                    "fusion/weight_next": float(schedule.value(t + 1).reshape(-1)[0])
-                    if scheme not in ("none", "human_only")
-                    else 0.0,
+                    "fusion/weight_next": float(schedule.value(t + 1).reshape(-1)[0]),
                     "fusion/match_rate": math.nan if m is None else m,
                     "time/iteration_s": elapsed,
                 }

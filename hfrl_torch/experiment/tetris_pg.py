@@ -32,23 +32,11 @@ from hfrl_torch.envs.tetris import TetrisEnv, TetrisRules
 from hfrl_torch.envs.tetris.features import feature_id, feature_names, feature_size
 from hfrl_torch.experiment.tetris_qlearning import FEATURES, greedy_evaluation
 from hfrl_torch.feedback.log import FeedbackLog
-from hfrl_torch.fusion.schedules import AnnealedWeight, ConstantWeight, TrustWeight, WeightSchedule
+from hfrl_torch.fusion.schedules import WeightSchedule
 from hfrl_torch.models.linear import greedy_placement
 from hfrl_torch.trainers.base import Trainer
 
 PG_FUSIONS = ("none", "linear", "annealed")
-
-
-def pg_weights(cfg: DictConfig, learners: int) -> WeightSchedule:
-    """The weight on H^ for each of ``learners``: trust (eq. 4.4, per learner), annealed or fixed."""
-    from hfrl_torch.experiment.factories import make_weight_schedule
-
-    one = make_weight_schedule(cfg)
-    if isinstance(one, TrustWeight):
-        return TrustWeight.from_initial(float(cfg.fusion.initial_trust), learners)
-    if isinstance(one, AnnealedWeight):
-        return AnnealedWeight([float(one.w0[0])] * learners, one.factor)
-    return ConstantWeight([float(one.value().reshape(-1)[0])] * learners)
 
 
 def run_pg(
@@ -240,7 +228,13 @@ def train_pg(cfg: DictConfig, run_dir: Path) -> dict[str, float]:
     policies (mean, median, 95 % interval); at the end each learner's greedy policy (argmax of theta . f)
     plays ``agent.eval_games`` fresh games.
     """
-    from hfrl_torch.experiment.factories import make_credit, make_rules, make_run_logger, make_trainer
+    from hfrl_torch.experiment.factories import (
+        make_credit,
+        make_rules,
+        make_run_logger,
+        make_trainer,
+        make_weight_schedule,
+    )
 
     check_pg(cfg)
     rules = make_rules(cfg)
@@ -258,7 +252,7 @@ def train_pg(cfg: DictConfig, run_dir: Path) -> dict[str, float]:
         feedback = {
             "trainer": trainer,
             "human": TamerAgent(n_h, a.learners, hm.alpha, make_credit(cfg), hm.window, hm.renormalise),
-            "weights": pg_weights(cfg, a.learners),
+            "weights": make_weight_schedule(cfg, a.learners),
             "human_features": hm.features,
             "seconds_per_placement": hm.seconds_per_placement,
         }

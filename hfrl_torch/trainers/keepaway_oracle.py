@@ -19,6 +19,7 @@ from hfrl_torch.feedback.credit import DelayDensity, GammaDelay
 from hfrl_torch.feedback.events import FeedbackEvent
 from hfrl_torch.feedback.log import FeedbackLog
 from hfrl_torch.trainers.base import board_session
+from hfrl_torch.trainers.oracle import oracle_noise
 from hfrl_torch.trainers.timing import sample_delays
 
 SOURCE = "simulated:keepaway_oracle"
@@ -63,8 +64,7 @@ class KeepawayOracle:
         """Feedback on the decisions ``action`` [B] taken in states ``obs`` [B, F] where ``deciding`` [B]
         at simulated times ``time`` [B]: values [B] (0 = none) and the times they arrive [B]."""
         b = action.shape[0]
-        speaks = torch.rand(b, generator=self.generator, dtype=torch.float64) < self.frequency
-        flips = torch.rand(b, generator=self.generator, dtype=torch.float64) >= self.consistency
+        speaks, flips = oracle_noise(b, self.frequency, self.consistency, self.generator)
         delays = sample_delays(self.delay, b, self.generator)
         right = action.cpu() == hand_coded_actions(obs.cpu(), self.keepers, self.takers)
         judged = torch.where(right, 1.0, -1.0) * torch.where(flips, -1.0, 1.0)

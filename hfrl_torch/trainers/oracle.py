@@ -17,6 +17,16 @@ from hfrl_torch.trainers.base import Events, Trainer, all_active
 from hfrl_torch.trainers.reference_policy import evaluate_placements
 
 
+def oracle_noise(
+    boards: int, frequency: float, consistency: float, generator: torch.Generator
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Griffith et al.'s two draws per board: whether the oracle speaks (probability L) and whether its
+    judgement is flipped (probability 1 - C); always both, so a run is a function of its seed."""
+    speaks = torch.rand(boards, generator=generator, dtype=torch.float64) < frequency
+    flips = torch.rand(boards, generator=generator, dtype=torch.float64) >= consistency
+    return speaks, flips
+
+
 class OracleTrainer(Trainer):
     """Griffith et al.'s oracle over Dellacherie's reference policy (source ``"simulated:oracle"``).
 
@@ -74,8 +84,6 @@ class OracleTrainer(Trainer):
         active: torch.Tensor | None = None,
     ) -> Events:
         act = all_active(obs, active)
-        b = act.shape[0]
-        speaks = torch.rand(b, generator=self.generator, dtype=torch.float64) < self.frequency
-        flips = torch.rand(b, generator=self.generator, dtype=torch.float64) >= self.consistency
+        speaks, flips = oracle_noise(act.shape[0], self.frequency, self.consistency, self.generator)
         h = torch.where(flips, -1.0, 1.0) * self.judge(obs, action, act)
         return self._one_per_board(h, act & speaks, time + self.reaction, obs, episode)
