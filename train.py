@@ -7,7 +7,7 @@ import sys
 import hydra
 from omegaconf import DictConfig
 
-from hfrl_torch.app import check_overrides, guarded, resume_log_dir
+from hfrl_torch.app import check_overrides, guarded, implied_overrides, resume_log_dir
 from hfrl_torch.experiment.factories import validate_train_config
 from hfrl_torch.experiment.train import train
 
@@ -19,6 +19,7 @@ def main(cfg: DictConfig) -> float | None:
 
 
 if __name__ == "__main__":
+    sys.argv += implied_overrides(sys.argv[1:])
     check_overrides(sys.argv[1:], "train", validate_train_config)
     sys.argv += resume_log_dir(sys.argv[1:])
     main()

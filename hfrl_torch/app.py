@@ -30,6 +30,34 @@ def check_group_choices(argv: list[str], conf_dir: Path = CONF_DIR) -> None:
                 fail(f"unknown {key} {choice!r}; allowed: {', '.join(allowed)}")
 
 
+DOMAIN_DEFAULTS = {"keepaway": {"agent": "sarsa", "human": "tile_coded"}}
+
+
+def implied_overrides(argv: list[str]) -> list[str]:
+    """Group choices a command line implies but does not name: a domain's own learner and H^
+    (``domain=keepaway``: ``agent=sarsa human=tile_coded``), the simulated oracle for a fusion that
+    needs a trainer (``fusion=linear``: ``trainer=oracle``), and one team of keepers for a person
+    (``domain=keepaway trainer=interactive``: ``agent.learners=1``). Sweeps over a group are left alone."""
+    given: dict[str, str] = {}
+    for arg in argv:
+        if not arg.startswith("-") and "=" in arg:
+            key, _, value = arg.lstrip("+~").partition("=")
+            given[key] = value
+    if "resume" in given and given["resume"] not in ("", "null"):
+        return []
+    extra: dict[str, str] = {}
+    for group, choice in DOMAIN_DEFAULTS.get(given.get("domain", ""), {}).items():
+        if group not in given:
+            extra[group] = choice
+    fusion = given.get("fusion", "none")
+    if "," not in fusion and fusion != "none" and "trainer" not in given and "experiment" not in given:
+        extra["trainer"] = "oracle"
+    person = given.get("domain") == "keepaway" and given.get("trainer") == "interactive"
+    if person and "agent.learners" not in given:
+        extra["agent.learners"] = "1"
+    return [f"{k}={v}" for k, v in extra.items()]
+
+
 def resume_log_dir(argv: list[str]) -> list[str]:
     """Extra overrides that keep a resume invocation's Hydra files inside the resumed run."""
     resume = [a.partition("=")[2] for a in argv if a.startswith("resume=")]

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 
-import numba
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
@@ -20,16 +19,7 @@ from hfrl_torch.envs.tetris.features import BT
 from hfrl_torch.experiment.evaluate import evaluate_tetris
 from hfrl_torch.experiment.tetris_qlearning import check_qlearning, run_qlearning, train_qlearning
 
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """One torch and one numba thread: the machine is shared, and numba's idle threads slow torch."""
-    torch_threads, numba_threads = torch.get_num_threads(), numba.get_num_threads()
-    torch.set_num_threads(1)
-    numba.set_num_threads(1)
-    yield
-    torch.set_num_threads(torch_threads)
-    numba.set_num_threads(numba_threads)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _cfg(name: str, *overrides: str) -> DictConfig:

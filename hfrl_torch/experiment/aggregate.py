@@ -112,13 +112,44 @@ def find_runs(dirs: list[Path]) -> tuple[list[Run], list[Path]]:
     return runs, broken
 
 
+def _keepaway_learners(run: Run, state: dict) -> list[Run]:
+    """Keepaway learners' curves from the checkpoint's episode records: each learner's mean episode
+    duration (seconds) over consecutive blocks of ``agent.log_episodes`` of its episodes."""
+    records = state.get("records", {})
+    rows = records.get("rows") if isinstance(records, dict) else None
+    agent = run.config.get("agent", {})
+    if not isinstance(rows, torch.Tensor) or rows.ndim != 2 or not isinstance(agent, dict):
+        return [run]
+    per_learner = int(agent.get("fields_per_learner", 1))
+    learners = int(agent.get("learners", 1))
+    block = max(1, int(agent.get("log_episodes", 10)))
+    seed = int(run.config.get("seed", 0))
+    out = []
+    for i in range(learners):
+        mine = rows[rows[:, 0] // per_learner == i]
+        mine = mine[mine[:, 1].argsort()]
+        seconds = mine[:, 3].double() / 10.0
+        full = seconds.shape[0] // block
+        if full == 0:
+            continue
+        means = seconds[: full * block].view(full, block).mean(1).tolist()
+        curve = [{"episode": (k + 1) * block, "eval/episode_seconds_mean": v} for k, v in enumerate(means)]
+        out.append(Run(run.path, {**run.config, "seed": seed * 1000 + i}, curve))
+    return out or [run]
+
+
 def _learners(run: Run) -> list[Run]:
     """A run of L independent learners (TAMER, Q-learning, PG: one board each, lines per game in its
-    checkpoint) as L runs with seeds ``seed * 1000 + learner``; any other run as itself."""
+    checkpoint; keepaway teams, episodes in its records) as L runs with seeds ``seed * 1000 + learner``;
+    any other run as itself."""
     ckpt = run.path / "checkpoints" / "last.pt"
-    if "game" not in run.rows[-1] or not ckpt.exists():
+    keepaway = run.rows[-1].get("axis") in ("hours", "episodes")
+    if not ckpt.exists() or ("game" not in run.rows[-1] and not keepaway):
         return [run]
-    lines = torch.load(ckpt, map_location="cpu", weights_only=True).get("state", {}).get("lines")
+    state = torch.load(ckpt, map_location="cpu", weights_only=True).get("state", {})
+    if keepaway:
+        return _keepaway_learners(run, state)
+    lines = state.get("lines")
     if not isinstance(lines, torch.Tensor) or lines.ndim != 2 or lines.shape[0] < 2:
         return [run]
     seed = int(run.config.get("seed", 0))

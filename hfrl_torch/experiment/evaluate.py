@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import torch
 from hydra.core.hydra_config import HydraConfig
@@ -13,11 +14,14 @@ from tqdm import tqdm
 
 from hfrl_torch.agents.cem.fused_rollout import FusedRollout
 from hfrl_torch.common.checkpoint import load_checkpoint
-from hfrl_torch.common.errors import ConfigError
+from hfrl_torch.common.errors import CheckpointError, ConfigError
 from hfrl_torch.common.stats import summarize
 from hfrl_torch.common.validation import require_bool, require_choice, require_float, require_int
 from hfrl_torch.envs.tetris.features import DELLACHERIE_WEIGHTS, feature_id, feature_size
 from hfrl_torch.experiment.factories import make_rollout, make_rules, set_threads, warm_up
+
+if TYPE_CHECKING:
+    from hfrl_torch.envs.keepaway import KeepawayConfig
 
 NAMED_POLICIES = ("dellacherie", "random")
 
@@ -165,7 +169,7 @@ def evaluate(cfg: DictConfig) -> dict[str, object]:
     return result
 
 
-KEEPAWAY_POLICIES = ("hand", "random", "hold")
+KEEPAWAY_POLICIES = ("hand", "random", "hold")  # besides a keepaway run directory or checkpoint file
 
 
 def keepaway_config(cfg: DictConfig):
@@ -185,49 +189,96 @@ def keepaway_config(cfg: DictConfig):
         turnover_cycles=turnover,
         movement_noise=require_bool(cfg, "domain.movement_noise"),
         noisy_observations=require_bool(cfg, "domain.noisy_observations"),
-        decision_period_cycles=require_int(cfg, "domain.decision_period_cycles", 1, 100),
+        decision_period_cycles=decision_period(cfg),
         intercept_horizon=require_int(cfg, "domain.intercept_horizon", 1, 200),
         collision_passes=require_int(cfg, "domain.collision_passes", 1, 100),
     )
 
 
+def decision_period(cfg: DictConfig) -> int:
+    """``domain.decision_period_cycles``, where null means 1 (100 ms, the reference) for keepers learning
+    from the environment and 5 (500 ms, the thesis's human-feedback runs) when a trainer watches."""
+    if OmegaConf.select(cfg, "domain.decision_period_cycles") is not None:
+        return require_int(cfg, "domain.decision_period_cycles", 1, 100)
+    return 1 if OmegaConf.select(cfg, "trainer.name", default="none") == "none" else 5
+
+
 def evaluate_keepaway(cfg: DictConfig, progress: bool = True) -> dict[str, object]:
-    """Play ``episodes`` episodes of a benchmark keeper policy and return the JSON summary."""
+    """Play ``episodes`` episodes of a keeper policy and return the JSON summary.
+
+    ``policy`` is a benchmark policy (hand, random, hold; played on the task ``domain`` sets) or a
+    keepaway Sarsa run directory or checkpoint file, played greedily (no exploration, no learning; a
+    trainer's run by its fusion rule, :mod:`hfrl_torch.agents.sarsa.policy`). A checkpoint is played on the
+    task it learned, its saved ``domain_config``: only ``domain.batch``, ``episodes`` and ``seed`` come from
+    the command line, and other ``domain.*`` values there are refused rather than ignored. Field f plays for
+    the checkpoint's team f % teams; the summary then adds ``teams`` and ``per_team_mean_s``.
+    """
     from dataclasses import asdict
 
-    from hfrl_torch.envs.keepaway import make_benchmark_policy, play_benchmark_policy, record_episode_gif
+    from hfrl_torch.agents.sarsa.policy import load_keeper_policy
+    from hfrl_torch.envs.keepaway import (
+        make_benchmark_policy,
+        play_benchmark_policy,
+        play_keeper_policy,
+        record_episode_gif,
+        record_keeper_gif,
+    )
 
     policy = "hand" if cfg.policy is None else str(cfg.policy)
-    if policy not in KEEPAWAY_POLICIES:
-        raise ConfigError(
-            f"policy={policy!r} is not a keepaway policy; allowed: {', '.join(KEEPAWAY_POLICIES)} "
-            "(learned keepaway checkpoints arrive with the keepaway learners)"
-        )
     episodes = require_int(cfg, "episodes", 1)
-    require_int(cfg, "seed", 0, 2**62)
+    seed = require_int(cfg, "seed", 0, 2**62)
     batch = require_int(cfg, "domain.batch", 1, 65536)
+    ckpt = None
+    if policy in KEEPAWAY_POLICIES:
+        config = keepaway_config(cfg)
+    else:
+        ckpt, config = _keepaway_checkpoint(policy)
     set_threads(cfg)
-    config = keepaway_config(cfg)
     options = asdict(config)
     options.pop("preset"), options.pop("keepers"), options.pop("takers")
-    result = play_benchmark_policy(
-        policy,
-        episodes,
-        preset=config.preset,
-        keepers=config.keepers,
-        takers=config.takers,
-        batch=batch,
-        seed=int(cfg.seed),
-        progress=progress,
-        **options,
-    )
+    task = {"preset": config.preset, "keepers": config.keepers, "takers": config.takers, **options}
+    if ckpt is None:
+        result = play_benchmark_policy(policy, episodes, batch=batch, seed=seed, progress=progress, **task)
+    else:
+        chooser, info = load_keeper_policy(ckpt, "cpu", torch.Generator().manual_seed(seed + 1))
+        result = play_keeper_policy(
+            chooser, policy, episodes, batch=batch, seed=seed, progress=progress, teams=info["teams"], **task
+        )
     if cfg.gif:
-        gen = torch.Generator().manual_seed(int(cfg.seed))
-        chooser = make_benchmark_policy(policy, config.keepers, config.takers, gen)
-        path, cycles = record_episode_gif(cfg.gif, chooser, config, seed=int(cfg.seed))
+        if ckpt is None:
+            gen = torch.Generator().manual_seed(seed)
+            benchmark = make_benchmark_policy(policy, config.keepers, config.takers, gen)
+            path, cycles = record_episode_gif(cfg.gif, benchmark, config, seed=seed)
+        else:
+            chooser, _ = load_keeper_policy(ckpt, "cpu", torch.Generator().manual_seed(seed))
+            path, cycles = record_keeper_gif(cfg.gif, chooser, config, seed=seed)
         result["gif"] = str(path)
         result["gif_episode_s"] = cycles / 10.0
     return result
+
+
+def _keepaway_checkpoint(policy: str) -> tuple[dict[str, Any], KeepawayConfig]:
+    """The keepaway checkpoint that ``policy`` (a run directory or checkpoint file) names and the task it
+    learned (a ``KeepawayConfig``); one-line errors."""
+    from hfrl_torch.envs.keepaway import KeepawayConfig
+
+    if not policy.strip() or not Path(policy).exists():
+        raise ConfigError(
+            f"policy={policy!r} is not a keepaway policy; allowed: {', '.join(KEEPAWAY_POLICIES)}, "
+            "or a keepaway run directory or checkpoint file"
+        )
+    explicit = [o for o in _task_overrides() if o.startswith("domain.") and not o.startswith("domain.batch=")]
+    if explicit:
+        raise ConfigError(
+            f"{explicit[0]} does not apply to a checkpoint, which is played on the task it learned "
+            "(set only domain.batch, episodes and seed)"
+        )
+    ckpt = load_checkpoint(policy, domain="keepaway")
+    try:
+        config = KeepawayConfig(**ckpt["domain_config"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise CheckpointError(f"checkpoint {ckpt['path']!r} holds no valid keepaway task ({e})") from None
+    return ckpt, config
 
 
 def format_keepaway_summary(r: dict[str, object]) -> str:
@@ -240,6 +291,18 @@ def format_keepaway_summary(r: dict[str, object]) -> str:
         f"  ended by takers {100 * r['taken_share']:.0f} %, out of bounds {100 * r['out_share']:.0f} %; "
         f"{r['cycles_per_s']:.0f} simulated cycles/s",
     ]
+    if "teams" in r:
+        means = [m for m in r["per_team_mean_s"] if m is not None]
+        shown = (
+            ", ".join(f"{m:.2f}" for m in means)
+            if len(means) <= 10
+            else f"{min(means):.2f}..{max(means):.2f}"
+        )
+        unplayed = len(r["per_team_mean_s"]) - len(means)
+        out.append(
+            f"  {r['teams']} teams, greedy (field f plays for team f % {r['teams']}): mean per team {shown} s"
+            + (f" ({unplayed} teams had no field: raise episodes or domain.batch)" if unplayed else "")
+        )
     if "gif" in r:
         out.append(f"  one episode ({r['gif_episode_s']:.1f} s) drawn to {r['gif']}")
     return "\n".join(out)

@@ -201,9 +201,11 @@ def make_weight_schedule(cfg: DictConfig, learners: int = 1) -> WeightSchedule:
 
 
 def fusion_normalises(cfg: DictConfig) -> bool:
-    """Whether ``fusion`` rescales R and H^ to [0, 1] per decision (false: the scheme has no such key)."""
-    if OmegaConf.select(cfg, "fusion.normalise") is None:
-        return False
+    """Whether Tetris fusion rescales R and H^ to [0, 1] per decision: ``fusion.normalise`` (null: yes, CE
+    values are hundreds of times H^); false when the scheme has no such key. Keepaway reads the same key
+    its own way (``keepaway_sarsa.fusion_scaling``)."""
+    if "normalise" not in cfg.fusion or OmegaConf.select(cfg, "fusion.normalise") is None:
+        return "normalise" in cfg.fusion
     return require_bool(cfg, "fusion.normalise")
 
 
@@ -273,20 +275,16 @@ def validate_train_config(cfg: DictConfig) -> None:
     domain = require_choice(cfg, "domain.name", DOMAINS)
     check_run(cfg)
     if domain == "keepaway" or cfg.agent.name == "sarsa":
-        from hfrl_torch.experiment.keepaway_sarsa import check_sarsa
+        from hfrl_torch.experiment.keepaway_sarsa import check_keepaway_feedback, check_sarsa
 
         if domain != "keepaway" or cfg.agent.name != "sarsa":
             raise ConfigError(
                 f"domain={domain} agent={cfg.agent.name}: keepaway is learned by agent=sarsa, "
                 "and agent=sarsa learns keepaway only (domain=keepaway agent=sarsa)"
             )
-        if cfg.fusion.name != "none" or cfg.trainer.name != "none":
-            raise ConfigError(
-                f"fusion={cfg.fusion.name} trainer={cfg.trainer.name}: Sarsa keepers learn from the "
-                "environment alone so far; use fusion=none trainer=none"
-            )
         require_int(cfg, "threads", 1, 256)
         check_sarsa(cfg)
+        check_keepaway_feedback(cfg)
         return
     make_rules(cfg)
     check_domain(cfg)

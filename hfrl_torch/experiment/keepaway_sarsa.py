@@ -40,17 +40,23 @@ from typing import Any
 
 import torch
 from omegaconf import DictConfig, OmegaConf
+from tensordict import TensorDictBase
 from tqdm import tqdm
 
 from hfrl_torch import keys
 from hfrl_torch.agents.sarsa import SarsaLambda, trace_capacity
+from hfrl_torch.agents.sarsa.fused_keepers import KEEPAWAY_SCHEMES, FusedKeepers
+from hfrl_torch.agents.tamer.keeper_tamer import KeeperTamer
 from hfrl_torch.common.checkpoint import LAST, save_checkpoint
 from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.common.logger import flatten_config, markdown_table
 from hfrl_torch.common.stats import summarize
 from hfrl_torch.common.validation import require_bool, require_choice, require_float, require_int
 from hfrl_torch.envs.keepaway import KeepawayConfig, KeepawayEnv
+from hfrl_torch.feedback.credit import GammaDelay
+from hfrl_torch.feedback.log import FeedbackLog
 from hfrl_torch.models.tile_coding import MAX_SIZE, TileCoding, keepaway_tile_widths
+from hfrl_torch.trainers.keepaway_oracle import KeepawayOracle
 
 CYCLES_PER_SECOND = 10
 CYCLES_PER_MINUTE = 60 * CYCLES_PER_SECOND
@@ -236,12 +242,17 @@ def run_sarsa_keepers(
     cycles: int = 0,
     episodes: int = 0,
     on_step: Callable[[KeepawayRecords], None] | None = None,
+    human: FusedKeepers | None = None,
+    watch: Callable[[TensorDictBase], None] | None = None,
 ) -> KeepawayRecords:
     """Play and learn until every learner's clock reaches ``cycles`` or every learner has finished
     ``episodes`` episodes (0 = no such limit), calling ``on_step`` after each env step.
 
     Works with either ``sync`` mode of the env: only the fields flagged ``"deciding"`` choose (agent row
-    field * keepers + keeper); the others' actions are ignored by the env.
+    field * keepers + keeper); the others' actions are ignored by the env. With ``human`` (one field per
+    learner), a trainer watches every field, H^ learns from its feedback and the keepers choose by the
+    fusion rule (:class:`FusedKeepers`). ``watch`` sees every step's tensordict (with its ``"next"``)
+    before the fields that ended restart: a live view, pacing for a person.
     """
     if cycles <= 0 and episodes <= 0:
         raise ValueError("run_sarsa_keepers needs a budget: cycles > 0 or episodes > 0")
@@ -259,25 +270,48 @@ def run_sarsa_keepers(
         by_episodes = episodes > 0 and bool((records.episodes < episodes).any())
         return (cycles <= 0 or by_time) and (episodes <= 0 or by_episodes)
 
+    if human is not None and records.fields_per_learner != 1:
+        raise ValueError("a trainer watches one field per learner: fields_per_learner must be 1")
+    if human is not None and human.trainer is not None:
+        human.trainer.new_episodes(torch.ones(fields, dtype=torch.bool))
+
     while budget_left():
         rows = td[keys.DECIDING].nonzero().squeeze(-1)
         if rows.numel():
             keeper = td[keys.KEEPER][rows]
-            chosen = agent.decide(
-                rows * n + keeper, td[keys.OBSERVATION][rows], td[keys.ACTION_MASK][rows], reward[rows]
-            )
+            obs, mask = td[keys.OBSERVATION][rows], td[keys.ACTION_MASK][rows]
+            if human is None:
+                chosen = agent.decide(rows * n + keeper, obs, mask, reward[rows])
+            else:
+                slots = rows * n + keeper
+                bonus = human.shaping(slots).to(device=reward.device, dtype=reward.dtype)
+                fuse = human.fuse(rows, keeper, mask)
+                chosen = agent.decide(
+                    slots, obs, mask, reward[rows] + bonus, fuse=fuse, explore=human.explores
+                )
+                clock = records.clock.double() / CYCLES_PER_SECOND
+                human.decided(rows, keeper, chosen, agent.chosen_tiles, obs, clock)
             records.decided(rows, keeper, chosen)
             action = action.index_put((rows,), chosen)
         td[keys.ACTION] = action
         td, td_next = env.step_and_maybe_reset(td)
+        if watch is not None:
+            watch(td)
         after = td["next"]
         ended = after[keys.DONE].view(-1)
         reward = torch.where(ended, 0.0, after[keys.REWARD].view(-1))  # a restarted field's keeper starts
         records.advance(after[keys.EPISODE_CYCLES])
+        if human is not None:
+            human.deliver(records.clock.double() / CYCLES_PER_SECOND)
         if bool(ended.any()):
             done_rows = ended.nonzero().squeeze(-1)
             slots = (done_rows.unsqueeze(1) * n + every_keeper).reshape(-1)
-            agent.end_episode(slots, after[keys.EPISODE_END_REWARDS][done_rows].reshape(-1))
+            end_rewards = after[keys.EPISODE_END_REWARDS][done_rows].reshape(-1)
+            if human is not None:
+                end_rewards = end_rewards + human.shaping(slots).to(end_rewards)
+                lasted = after[keys.EPISODE_CYCLES].view(-1)[done_rows]
+                human.end_episodes(done_rows, lasted.double() / CYCLES_PER_SECOND)
+            agent.end_episode(slots, end_rewards)
             records.finish(ended, after[keys.EPISODE_CYCLES])
         td = td_next
         records.advance(td[keys.EPISODE_CYCLES])
@@ -335,6 +369,146 @@ def check_sarsa(cfg: DictConfig) -> None:
         )
 
 
+KEEPAWAY_TRAINERS = ("none", "oracle", "interactive")
+
+
+def check_keepaway_feedback(cfg: DictConfig) -> None:
+    """Check ``fusion``, ``trainer`` and ``human`` for keepers taught by a trainer (thesis Chapter 5)."""
+    from hfrl_torch.experiment.factories import make_credit, make_weight_schedule
+
+    fusion = require_choice(cfg, "fusion.name", KEEPAWAY_SCHEMES)
+    trainer = cfg.trainer.name
+    if trainer not in KEEPAWAY_TRAINERS:
+        raise ConfigError(
+            f"trainer={trainer} is not available for keepaway yet; allowed: {', '.join(KEEPAWAY_TRAINERS)}"
+        )
+    if trainer == "none":
+        if fusion != "none":
+            raise ConfigError(
+                f"fusion={fusion} fuses a trainer's H^ with Q; choose trainer=oracle (or fusion=none)"
+            )
+        return
+    if trainer == "interactive":
+        from hfrl_torch.interactive.live import check_interactive
+
+        check_interactive(cfg)
+        if int(cfg.agent.learners) != 1:
+            raise ConfigError(
+                f"agent.learners={cfg.agent.learners} with trainer=interactive: one person teaches one team "
+                "of keepers on one field; allowed: 1 (what train.py sets when the command line leaves it out)"
+            )
+    if int(cfg.agent.fields_per_learner) != 1:
+        raise ConfigError(
+            f"agent.fields_per_learner={cfg.agent.fields_per_learner} with a trainer: one trainer watches "
+            "one field, so each learner plays one field; allowed: 1"
+        )
+    require_choice(cfg, "human.name", ("tile_coded",))
+    require_float(cfg, "human.alpha", 1e-12)
+    require_choice(cfg, "human.model", ("team", "keeper"))
+    make_credit(cfg)
+    require_float(cfg, "human.window", 1e-6)
+    require_bool(cfg, "human.renormalise")
+    require_int(cfg, "human.history", 1, 1024)
+    make_weight_schedule(cfg, 1)
+    fusion_scaling(cfg)
+    if trainer == "interactive":
+        return
+    require_float(cfg, "trainer.frequency", 0.0, 1.0)
+    require_float(cfg, "trainer.consistency", 0.0, 1.0)
+    require_float(cfg, "trainer.reaction", 1e-6)
+    if require_bool(cfg, "trainer.timing.enabled"):
+        require_float(cfg, "trainer.timing.delay_shape", 1e-6)
+        require_float(cfg, "trainer.timing.delay_scale", 1e-6)
+        if OmegaConf.select(cfg, "trainer.timing.fatigue_tau") is not None:
+            require_float(cfg, "trainer.timing.fatigue_tau", 1e-6)
+        require_float(cfg, "trainer.timing.positive_bias", 0.0, 1.0)
+        require_float(cfg, "trainer.timing.absence", 0.0, 1.0)
+        if OmegaConf.select(cfg, "trainer.timing.tail_lines") is not None:
+            raise ConfigError(
+                "trainer.timing.tail_lines is a Tetris option (lines per game); keepaway allows only null"
+            )
+
+
+def fusion_scaling(cfg: DictConfig) -> str:
+    """How keepaway puts Q and H^ on one scale: ``fusion.normalise`` true (per decision, as in Tetris), false
+    (raw), ``spread`` or null (the keepaway default, ``spread``); see :class:`FusedKeepers`."""
+    value = OmegaConf.select(cfg, "fusion.normalise")
+    if value is None or value == "spread":
+        return "spread"
+    if isinstance(value, bool):
+        return "decision" if value else "none"
+    raise ConfigError(f"fusion.normalise={value!r} is invalid; allowed: true, false, spread, null")
+
+
+def _human_from_config(
+    cfg: DictConfig,
+    config: KeepawayConfig,
+    agent: SarsaLambda,
+    log: FeedbackLog | None,
+    session: Any = None,
+) -> FusedKeepers:
+    """H^ on the Sarsa keepers' tile coding, the trainer (the simulated oracle, or with trainer=interactive
+    the person on the page of ``session``, a ``TeachingSession``) and the fusion rule of ``cfg``."""
+    from hfrl_torch.experiment.factories import make_credit, make_weight_schedule
+
+    fields, n = int(cfg.agent.learners), config.keepers
+    per_keeper = cfg.human.model == "keeper"
+    coder = agent.coder
+    model = TileCoding(
+        coder.widths.tolist(),
+        num_actions=coder.num_actions,
+        learners=fields * n if per_keeper else fields,
+        tilings=coder.tilings,
+        size=coder.size,
+        device=coder.weight.device,
+    )
+    tamer = KeeperTamer(
+        model,
+        fields,
+        alpha=float(cfg.human.alpha),
+        credit=make_credit(cfg),
+        window=float(cfg.human.window),
+        history=int(cfg.human.history),
+        renormalise=bool(cfg.human.renormalise),
+    )
+    t = cfg.trainer
+    if t.name == "interactive":
+        from hfrl_torch.interactive.keepaway_live import BrowserKeeperTrainer
+
+        if session is None:
+            raise ValueError("trainer=interactive needs the page's session")
+        trainer = BrowserKeeperTrainer(session, fields, log)
+    else:
+        timing = t.timing
+        on = bool(timing.enabled)
+        trainer = KeepawayOracle(
+            n,
+            config.takers,
+            frequency=float(t.frequency),
+            consistency=float(t.consistency),
+            delay=GammaDelay(float(timing.delay_shape), float(timing.delay_scale))
+            if on
+            else float(t.reaction),
+            seed=int(cfg.seed) * 2 + 1,
+            log=log,
+            fatigue_tau=None if not on or timing.fatigue_tau is None else float(timing.fatigue_tau),
+            positive_bias=float(timing.positive_bias) if on else 0.0,
+            absence=float(timing.absence) if on else 0.0,
+        )
+    rows = torch.arange(fields * n)
+    owners = rows if per_keeper else torch.div(rows, n, rounding_mode="floor")
+    return FusedKeepers(
+        cfg.fusion.name,
+        make_weight_schedule(cfg, fields),
+        tamer,
+        trainer,
+        n,
+        owners,
+        scaling=fusion_scaling(cfg),
+        seed=int(cfg.seed) * 2 + 3,
+    )
+
+
 def _agent_from_config(cfg: DictConfig, config: KeepawayConfig, device: torch.device) -> SarsaLambda:
     a = cfg.agent
     return make_sarsa_keepers(
@@ -365,10 +539,21 @@ def train_sarsa(cfg: DictConfig, run_dir: Path, checkpoint: dict[str, Any] | Non
     from hfrl_torch.experiment.factories import make_device, make_run_logger
 
     check_sarsa(cfg)
+    check_keepaway_feedback(cfg)
     a = cfg.agent
     config = keepaway_config(cfg)
     device = make_device(cfg)
     agent = _agent_from_config(cfg, config, device)
+    taught = cfg.trainer.name != "none"
+    person = cfg.trainer.name == "interactive"  # a person's presses cannot be regenerated: fsync each
+    log = FeedbackLog(run_dir / "feedback.jsonl", session=run_dir.name, fsync=person) if taught else None
+    teaching = None
+    if person:
+        from hfrl_torch.interactive.live import start_live_teaching
+
+        teaching = start_live_teaching(cfg, log, view="keepaway")
+    session = None if teaching is None else teaching.session
+    human = _human_from_config(cfg, config, agent, log, session) if taught else None
     fields = a.learners * a.fields_per_learner
     records = KeepawayRecords(fields, config.keepers, a.fields_per_learner)
     history: list[dict[str, float]] = []
@@ -378,10 +563,18 @@ def train_sarsa(cfg: DictConfig, run_dir: Path, checkpoint: dict[str, Any] | Non
         agent.load_state_dict(state["agent"])
         agent.forget_episodes()
         records.load_state_dict(state["records"])
+        if human is not None:
+            human.load_state_dict(state["human"])
         history = list(checkpoint["history"])
         resumes = int(state["resumes"]) + 1
         time_windows, episode_windows = int(state["time_windows"]), int(state["episode_windows"])
     env = KeepawayEnv(fields, config, device=device, seed=int(cfg.seed) + 1_000_003 * resumes, sync="any")
+    watch = None
+    if teaching is not None and human is not None:
+        from hfrl_torch.interactive.keepaway_live import wait_for_teacher, watch_field
+
+        watch = watch_field(env, records, human, curve_every=int(a.log_episodes))
+        wait_for_teacher(cfg, teaching)
 
     window = max(1, round(a.log_minutes * CYCLES_PER_MINUTE))
     every = max(1, round(a.checkpoint_minutes * CYCLES_PER_MINUTE))
@@ -403,6 +596,17 @@ def train_sarsa(cfg: DictConfig, run_dir: Path, checkpoint: dict[str, Any] | Non
             f"{a.learners} learners ({a.fields_per_learner} fields each) of each learner's mean episode "
             "duration, with its 95 % interval.",
         )
+        if human is not None:
+            who = (
+                "human:browser: a PERSON teaching in the browser (trainer=interactive), watching field 0"
+                if person
+                else f"{KeepawayOracle.source}: a SIMULATED trainer (Griffith et al.'s oracle against the "
+                f"hand-coded policy, L={cfg.trainer.frequency}, C={cfg.trainer.consistency}), not a person"
+            )
+            logger.text(
+                "trainer",
+                f"{who}; fusion={cfg.fusion.name}, credit={cfg.human.credit}, H^ per {cfg.human.model}",
+            )
     metrics_file = run_dir / "metrics.jsonl"
     ckpt_path = run_dir / "checkpoints" / LAST
     config_yaml = OmegaConf.to_yaml(cfg, resolve=True)
@@ -421,6 +625,7 @@ def train_sarsa(cfg: DictConfig, run_dir: Path, checkpoint: dict[str, Any] | Non
                     "resumes": resumes,
                     "time_windows": time_windows,
                     "episode_windows": episode_windows,
+                    **({"human": human.state_dict()} if human is not None else {}),
                 },
                 "history": history,
                 "policy": {
@@ -431,6 +636,17 @@ def train_sarsa(cfg: DictConfig, run_dir: Path, checkpoint: dict[str, Any] | Non
                     "num_actions": agent.coder.num_actions,
                     "learners": "(field // fields_per_learner) * keepers + keeper",
                     "fields_per_learner": a.fields_per_learner,
+                    "teams": int(a.learners),
+                    "share_weights": bool(a.share_weights),
+                    "human": None
+                    if human is None
+                    else {
+                        "scheme": human.scheme,
+                        "model": str(cfg.human.model),
+                        "scaling": human.scaling,
+                        "q_spread": human.q_spread.tolist(),
+                        "weight": human.schedule.value().tolist(),
+                    },
                 },
                 "domain_config": asdict(config),
             },
@@ -462,6 +678,8 @@ def train_sarsa(cfg: DictConfig, run_dir: Path, checkpoint: dict[str, Any] | Non
             stats["field_cycles_per_s"] = (int(rec.clock.sum()) - start_clock) / max(wall, 1e-9)
             for k in range(rec.keepers):
                 stats[f"decisions_total_keeper{k}"] = float(rec.table[:, 5 + k].sum()) / rec.learners
+            if human is not None:
+                stats.update(human.stats())
             end = time_windows * window
             logger.scalars(stats, _seconds(end), prefix="by_hours/")
             write({"axis": "hours", "hours": end / CYCLES_PER_HOUR, "sim_seconds": _seconds(end), **stats})
@@ -469,6 +687,8 @@ def train_sarsa(cfg: DictConfig, run_dir: Path, checkpoint: dict[str, Any] | Non
         while int(rec.episodes.min()) >= (episode_windows + 1) * a.log_episodes:
             lo = episode_windows * a.log_episodes
             stats = rec.episode_window(lo, lo + a.log_episodes)
+            if human is not None:
+                stats.update(human.stats())
             episode_windows += 1
             episode_logger.scalars(stats, lo + a.log_episodes, prefix="by_episodes/")
             write({"axis": "episodes", "episode": lo + a.log_episodes, **stats})
@@ -482,15 +702,30 @@ def train_sarsa(cfg: DictConfig, run_dir: Path, checkpoint: dict[str, Any] | Non
             bar.update(position - bar.n)
 
     try:
-        run_sarsa_keepers(env, agent, records, cycles=budget_cycles, episodes=a.episodes, on_step=on_step)
+        run_sarsa_keepers(
+            env,
+            agent,
+            records,
+            cycles=budget_cycles,
+            episodes=a.episodes,
+            on_step=on_step,
+            human=human,
+            watch=watch,
+        )
     finally:
         bar.close()
+        if teaching is not None:
+            teaching.stop()
         save()
         episode_logger.close()
+        if log is not None:
+            log.close()
     timed = [h for h in history if h["axis"] == "hours"]
     final = dict(timed[-1]) if timed else {}
     if final:
         final["wall_s"] = time.perf_counter() - start_wall
+        if human is not None:
+            final["feedback_events"] = float(human.feedback.sum())
         logger.hparams(flatten_config(cfg), {"hparam/episode_s_last": final["episode_s_mean"]})
     logger.close()
     return final

@@ -183,8 +183,9 @@ def train(cfg: DictConfig) -> TrainResult:
         lines.append(f"Checkpoint:       {ckpt}")
     if cfg.logger.backend == "tensorboard":
         lines.append(f"TensorBoard:      {tensorboard} --logdir {run_dir / 'tensorboard'}")
-    if ckpt.exists() and agent != "sarsa":  # evaluate.py does not play keepaway checkpoints yet
-        lines.append(f"Evaluate:         {python} evaluate.py policy={run_dir}")
+    if ckpt.exists():
+        keepaway = "domain=keepaway " if domain == "keepaway" else ""
+        lines.append(f"Evaluate:         {python} evaluate.py {keepaway}policy={run_dir}")
     print("\n".join(lines), file=sys.stderr)
     if interrupted:
         sys.exit(130)

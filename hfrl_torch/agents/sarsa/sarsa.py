@@ -30,6 +30,7 @@ traces are dropped first (the reference raises its minimum trace instead).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any
 
 import torch
@@ -105,6 +106,7 @@ class SarsaLambda:
         self.trace_value = torch.zeros(learners, capacity, dtype=dtype, device=device)
         self.generator = torch.Generator(device=device)
         self.generator.manual_seed(seed)
+        self.chosen_tiles = torch.zeros(0, coder.active_tiles, dtype=torch.int64, device=device)
 
     @property
     def learners(self) -> int:
@@ -158,7 +160,13 @@ class SarsaLambda:
 
     @torch.no_grad()
     def decide(
-        self, learners: torch.Tensor, obs: torch.Tensor, mask: torch.Tensor, reward: torch.Tensor
+        self,
+        learners: torch.Tensor,
+        obs: torch.Tensor,
+        mask: torch.Tensor,
+        reward: torch.Tensor,
+        fuse: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
+        explore: bool = True,
     ) -> torch.Tensor:
         """One decision per row: RLstartEpisode where the learner has no pending action, RLstep with
         ``reward`` (the SMDP step's reward, e.g. cycles since its last decision) where it has one.
@@ -167,7 +175,11 @@ class SarsaLambda:
         :param obs: [M, F] state variables of each learner's state s.
         :param mask: [M, A] available actions A^s.
         :param reward: [M] reward of the step that ended in s (ignored for starting learners).
-        :returns: [M] the chosen actions (the new LastAction).
+        :param fuse: the action is chosen over ``fuse(Q [M, A], tiles [M, A, N])`` instead of Q (a
+            person's H^ fused in); the update stays Sarsa's, with Q of the action taken.
+        :param explore: epsilon-greedy (True) or greedy with random ties (False).
+        :returns: [M] the chosen actions (the new LastAction); their active tiles are left in
+            ``chosen_tiles`` [M, N].
         """
         if torch.unique(learners).numel() != learners.numel():
             raise ValueError("decide: rows must name distinct learners")
@@ -178,7 +190,7 @@ class SarsaLambda:
         tables = self.tables[learners]
         tiles = coder.tiles(obs)  # [M, A, N]            lines 1-2 / 11-12
         q = coder(tables, tiles)  # [M, A]               lines 3 / 13
-        action = self.select(q, mask)  # lines 4 / 14
+        action = self.select(q if fuse is None else fuse(q, tiles), mask, explore)  # lines 4 / 14
         q_next = q.gather(1, action.unsqueeze(1)).squeeze(1)
 
         index, value = self.trace_index[learners], self.trace_value[learners]
@@ -199,6 +211,7 @@ class SarsaLambda:
         self.trace_index[learners], self.trace_value[learners] = index, value
         self.last_action[learners] = action  # line 4 / 14 (LastActionTime is the env's clock)
         self.q_last[learners] = q_last
+        self.chosen_tiles = chosen
         return action
 
     @torch.no_grad()

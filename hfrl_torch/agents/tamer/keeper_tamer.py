@@ -28,6 +28,7 @@ class KeeperTamer:
     :param credit: delay density of the credit (gamma(2.0, 0.28) by default).
     :param window: longest delay credited, seconds.
     :param history: decisions per field that can still receive credit.
+    :param renormalise: scale each event's credits to sum to 1.
     """
 
     def __init__(
@@ -38,6 +39,7 @@ class KeeperTamer:
         credit: CreditModel | None = None,
         window: float | None = 0.5,
         history: int = 16,
+        renormalise: bool = False,
     ) -> None:
         if not alpha > 0 or history < 1 or fields < 1:
             raise ValueError(
@@ -47,6 +49,7 @@ class KeeperTamer:
         self.alpha = float(alpha)
         self.credit = GammaDelay(2.0, 0.28) if credit is None else credit
         self.window = window
+        self.renormalise = renormalise
         n = model.active_tiles
         self.tiles = torch.zeros(fields, history, n, dtype=torch.int64)
         self.owner = torch.zeros(fields, history, dtype=torch.int64)
@@ -87,7 +90,9 @@ class KeeperTamer:
         if not bool(given.any()):
             return 0
         ends = torch.cat([self.starts[:, 1:], torch.full_like(self.starts[:, :1], torch.inf)], 1)
-        c = credit_weights(times.to(torch.float64), self.starts, ends, self.credit, self.window)
+        c = credit_weights(
+            times.to(torch.float64), self.starts, ends, self.credit, self.window, self.renormalise
+        )
         c = torch.where(self.filled & given.unsqueeze(-1), c, 0.0)
         hit = c > 0
         if not bool(hit.any()):

@@ -1,7 +1,12 @@
 """RoboCup keepaway (Stone, Sutton & Kuhlmann 2005) as a batched torch simulator, a TorchRL
 environment and a Gymnasium environment ("hfrl_torch/Keepaway-v0")."""
 
-from hfrl_torch.envs.keepaway.benchmark_policies import play_benchmark_policy
+from hfrl_torch.envs.keepaway.benchmark_policies import (
+    KeeperChooser,
+    play_benchmark_policy,
+    play_keeper_policy,
+    record_keeper_gif,
+)
 from hfrl_torch.envs.keepaway.env import EPISODE_END_REWARDS, STEP_CYCLES, KeepawayEnv
 from hfrl_torch.envs.keepaway.gym_env import ENV_ID, KeepawayGymEnv, register_keepaway
 from hfrl_torch.envs.keepaway.params import PRESETS, KeepawayConfig, PhysicsParams, physics_preset
@@ -29,6 +34,7 @@ __all__ = [
     "KeepawayGymEnv",
     "KeepawaySimulator",
     "KeepawayState",
+    "KeeperChooser",
     "PhysicsParams",
     "hand_coded_actions",
     "hold_actions",
@@ -36,8 +42,10 @@ __all__ = [
     "make_benchmark_policy",
     "physics_preset",
     "play_benchmark_policy",
+    "play_keeper_policy",
     "random_actions",
     "record_episode_gif",
+    "record_keeper_gif",
     "register_keepaway",
     "render_rgb",
     "write_gif",
