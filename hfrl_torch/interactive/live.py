@@ -15,6 +15,9 @@ from hfrl_torch.interactive.session import TeachingSession
 from hfrl_torch.trainers.queue_trainer import QueueTrainer
 
 KEY_NAMES = ("good", "bad", "pause", "presence")
+# the starting speed when trainer.actions_per_s is null: Tetris placements per second (the thesis's tools:
+# 5-7), keepaway decision periods per second (2 = real time at the 500 ms decisions of a taught run)
+DEFAULT_SPEED = {"tetris": 5.0, "keepaway": 2.0}
 
 
 @dataclass
@@ -41,7 +44,8 @@ def check_interactive(cfg: DictConfig) -> None:
     if not isinstance(host, str) or not host:
         raise ConfigError(f"trainer.host={host!r} is invalid: must be an address such as 127.0.0.1")
     require_int(cfg, "trainer.port", 0, 65535)
-    require_float(cfg, "trainer.actions_per_s", MIN_SPEED, MAX_SPEED)
+    if OmegaConf.select(cfg, "trainer.actions_per_s") is not None:
+        require_float(cfg, "trainer.actions_per_s", MIN_SPEED, MAX_SPEED)
     require_float(cfg, "trainer.wait_for_page_s", 0.0)
     require_int(cfg, "trainer.max_message_bytes", 64, 65536)
     require_float(cfg, "trainer.max_messages_per_s", 1.0, 1000.0)
@@ -62,7 +66,8 @@ def start_live_teaching(cfg: DictConfig, log: FeedbackLog, view: str) -> LiveTea
     """Start the page's server for ``view`` (tetris or keepaway); raises ConfigError if it cannot serve."""
     check_interactive(cfg)
     t = cfg.trainer
-    session = TeachingSession(actions_per_s=float(t.actions_per_s))
+    speed = DEFAULT_SPEED[view] if t.actions_per_s is None else float(t.actions_per_s)
+    session = TeachingSession(actions_per_s=speed)
     server = TeachingServer(
         session,
         host=t.host,

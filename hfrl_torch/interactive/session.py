@@ -131,15 +131,17 @@ class TeachingSession:
             self.curve.append([float(x), float(y)])
             self.curve_version += 1
 
-    def wait_turn(self) -> float:
+    def wait_turn(self, actions: float = 1.0) -> float:
         """Block until the agent may take its next action (speed, pause); returns the clock's time then.
 
-        While paused the loop waits; if the last page closes or the person leaves, it stops waiting.
+        ``actions`` is how many actions' time this turn lasts (keepaway paces each 100 ms cycle as a fifth
+        of a 500 ms decision). While paused the loop waits; if the last page closes or the person leaves,
+        it stops waiting.
         """
         with self._cond:
             while self.paused and self.clients > 0 and self.here:
                 self._cond.wait(timeout=0.1)
-            period = 1.0 / self.actions_per_s
+            period = actions / self.actions_per_s
         now = self.clock()
         if self._next_action is not None and now < self._next_action:
             self.sleep(self._next_action - now)

@@ -10,6 +10,7 @@ let paused = false;
 let here = true;
 let given = 0;
 let curve = [];
+let view = "tetris";
 
 function send(obj) {
   if (ws && ws.readyState === WebSocket.OPEN) ws.send(JSON.stringify(obj));
@@ -49,31 +50,59 @@ function drawTetris(f) {
   $("action").textContent = f.action;
 }
 
+function disc(g, x, y, r, colour) {
+  g.fillStyle = colour; g.beginPath(); g.arc(x, y, r, 0, 2 * Math.PI); g.fill();
+}
+
+function arrow(g, [x0, y0], [tx, ty]) {
+  const a = Math.atan2(ty - y0, tx - x0), h = 10;
+  const x1 = tx - 13 * Math.cos(a), y1 = ty - 13 * Math.sin(a);  // stop at the receiver's edge
+  g.strokeStyle = "#ffe040"; g.fillStyle = "#ffe040"; g.lineWidth = 2; g.setLineDash([6, 4]);
+  g.beginPath(); g.moveTo(x0, y0); g.lineTo(x1, y1); g.stroke(); g.setLineDash([]);
+  g.beginPath(); g.moveTo(x1, y1);
+  g.lineTo(x1 - h * Math.cos(a - 0.4), y1 - h * Math.sin(a - 0.4));
+  g.lineTo(x1 - h * Math.cos(a + 0.4), y1 - h * Math.sin(a + 0.4));
+  g.closePath(); g.fill();
+}
+
 function drawKeepaway(f) {
   const c = $("view");
-  c.width = 400; c.height = 400;
+  if (c.width !== 400 || c.height !== 400) { c.width = 400; c.height = 400; }
   const g = c.getContext("2d");
   const [len, wid] = f.region;
-  const s = 360 / Math.max(len, wid), ox = 20, oy = 20;
+  const s = 360 / Math.max(len, wid), ox = 20 + (360 - len * s) / 2, oy = 20 + (360 - wid * s) / 2;
   const px = (p) => [ox + (p[0] + len / 2) * s, oy + (wid / 2 - p[1]) * s];
-  g.fillStyle = "#2d6b30"; g.fillRect(0, 0, c.width, c.height);
-  g.strokeStyle = "#fff"; g.strokeRect(ox, oy, len * s, wid * s);
+  g.fillStyle = "#22602f"; g.fillRect(0, 0, c.width, c.height);
+  g.strokeStyle = "#eee"; g.lineWidth = 2; g.strokeRect(ox, oy, len * s, wid * s);
+  if (f.target >= 0) arrow(g, px(f.ball), px(f.keepers[f.target]));
+  f.takers.forEach((p) => { const [x, y] = px(p); disc(g, x, y, 8, "#e03030"); });
+  g.font = "bold 11px system-ui, sans-serif"; g.textAlign = "center"; g.textBaseline = "middle";
   f.keepers.forEach((p, i) => {
     const [x, y] = px(p);
-    g.fillStyle = i === f.holder ? "#ffe040" : "#3070ff";
-    g.beginPath(); g.arc(x, y, 7, 0, 2 * Math.PI); g.fill();
-  });
-  f.takers.forEach((p) => {
-    const [x, y] = px(p);
-    g.fillStyle = "#e03030";
-    g.beginPath(); g.arc(x, y, 7, 0, 2 * Math.PI); g.fill();
+    if (i === f.holder) disc(g, x, y, 12, "#ffd700");
+    disc(g, x, y, 8, "#3070ff");
+    g.fillStyle = "#fff"; g.fillText(String(i + 1), x, y + 0.5);
   });
   const [bx, by] = px(f.ball);
-  g.fillStyle = "#fff"; g.beginPath(); g.arc(bx, by, 4, 0, 2 * Math.PI); g.fill();
+  disc(g, bx, by, 5, "#000"); disc(g, bx, by, 4, "#fff");
   $("score-label").textContent = "Hold time";
   $("score").textContent = `${f.time_s.toFixed(1)} s`;
   $("episode").textContent = String(f.episode);
   $("action").textContent = f.action;
+  $("mean-hold").textContent = f.mean_hold_s === null ? "-" : `${f.mean_hold_s.toFixed(1)} s`;
+  $("trust").textContent = f.weight === null ? "-" : f.weight.toFixed(2);
+  $("speed-unit").textContent = `decisions/s (real time: ${f.real_time})`;
+}
+
+function showView(view) {
+  if (view !== "keepaway") return;
+  document.body.classList.add("keepaway");
+  $("help").innerHTML = "Watch the keepers (blue, numbered) keep the ball from the takers (red). Press " +
+    '<kbd id="key-good">/</kbd> or <b>Good</b> when they keep it well: holding when the takers are far, ' +
+    'passing to an open teammate. Press <kbd id="key-bad">z</kbd> or <b>Bad</b> for passes into a taker ' +
+    "or holding on while the takers close in. They learn from you and from how long they keep the ball.";
+  $("score-label").textContent = "Hold time";
+  $("speed-unit").textContent = "decisions/s";
 }
 
 function drawCurve() {
@@ -90,7 +119,9 @@ function drawCurve() {
   });
   g.stroke();
   const last = curve[curve.length - 1];
-  $("curve-label").textContent = `lines per test game after each round of practice: latest ${last[1].toFixed(1)}, best ${y1.toFixed(1)}`;
+  $("curve-label").textContent = view === "keepaway"
+    ? `seconds the keepers kept the ball per episode (mean of each block of episodes): latest ${last[1].toFixed(1)}, best ${y1.toFixed(1)}`
+    : `lines per test game after each round of practice: latest ${last[1].toFixed(1)}, best ${y1.toFixed(1)}`;
 }
 
 function showSettings(m) {
@@ -105,7 +136,8 @@ function showSettings(m) {
 function onMessage(ev) {
   const m = JSON.parse(ev.data);
   if (m.type === "config") {
-    keys = m.keys;
+    keys = m.keys; view = m.view || "tetris";
+    showView(view);
     $("key-good").textContent = keys.good; $("key-bad").textContent = keys.bad;
     $("key-pause").textContent = keys.pause; $("key-presence").textContent = keys.presence;
   } else if (m.type === "settings") showSettings(m);

@@ -1,0 +1,357 @@
+"""``train.py domain=keepaway trainer=interactive``: a person teaches Sarsa keepers from the browser.
+
+One person watches one field: the run has one learner (``agent.learners=1``, which train.py implies for
+this command), and the page shows field 0. Three pieces join the live page to the keepers' loop
+(``run_sarsa_keepers`` with :class:`~hfrl_torch.agents.sarsa.fused_keepers.FusedKeepers`):
+
+* :class:`KeepawayWatcher` shows every 100 ms simulator cycle of the field on the page, paced to the page's
+  speed while the person teaches, and adds the hold times to the page's learning curve. It hooks the
+  simulator's ``step`` (one call per cycle) because an env step runs many cycles, and a pass shown only
+  at its start and end would be impossible to judge.
+* :class:`ScreenTimeline` remembers when each frame was shown (wall clock) and which simulated moment it
+  showed.
+* :class:`BrowserKeeperTrainer`, the keepers' trainer, turns the presses into events on the field's
+  simulated clock, where H^ credits them.
+
+**Time.** H^ credits feedback on the field's simulated clock (seconds, 10 cycles each), while a press is
+stamped with the wall clock. A press at wall time w is credited at ``min(S(w - r) + r, now)``, where
+S(w') is the simulated time of the frame on screen at w', r = 0.3 s a typical reaction delay (near the
+mode of the gamma(2.0, 0.28) credit density) and ``now`` the field's clock when the event is read. At real
+time this is S(w), what was on screen at the press. At other speeds, or after a pause, the credit still
+centres on what the person saw about r seconds before pressing: the person's reaction delay is not
+stretched or squeezed by the speed.
+
+**Speed.** The page's speed is in decision periods per wall second: one period is
+``domain.decision_period_cycles`` cycles (5 when a trainer watches: the thesis's 500 ms). So 2 is real
+time (10 cycles a second), which is the default, 0.5 a quarter of it and 20 ten times faster.
+
+**Nobody watching.** With the page closed, or "I'm away", the loop runs at full speed from the
+environment alone (the H^ learned so far still counts in the fusion), and an open page gets a frame about
+five times a second. Opening the page, or "I'm here", brings back the pacing and the teaching.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from collections import deque
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import torch
+from omegaconf import DictConfig
+from tensordict import TensorDictBase
+from torch import Tensor
+from tqdm import tqdm
+
+from hfrl_torch import keys
+from hfrl_torch.common.errors import CheckpointError
+from hfrl_torch.envs.keepaway.params import KeepawayConfig
+from hfrl_torch.envs.keepaway.simulator import KeepawaySimulator, KeepawayState
+from hfrl_torch.feedback.events import FeedbackEvent, FeedbackQueue
+from hfrl_torch.feedback.log import FeedbackLog
+from hfrl_torch.interactive.session import SOURCE, TeachingSession
+
+if TYPE_CHECKING:
+    from hfrl_torch.agents.sarsa.fused_keepers import FusedKeepers
+    from hfrl_torch.envs.keepaway import KeepawayEnv
+    from hfrl_torch.experiment.keepaway_sarsa import KeepawayRecords
+    from hfrl_torch.interactive.live import LiveTeaching
+
+CYCLES_PER_SECOND = 10
+REACTION_S = 0.3
+UNPACED_FRAME_S = 0.2  # wall seconds between frames while nobody teaches
+RECENT_EPISODES = 10  # episodes in the page's mean hold time
+
+
+@dataclass(frozen=True)
+class Shown:
+    """One frame on the page: when it was shown (wall clock), the simulated time of its state, the episode
+    and the decision of that episode it showed (-1: before the first)."""
+
+    wall: float
+    sim: float
+    episode: int
+    step: int
+
+
+class ScreenTimeline:
+    """What the page showed when: the last ``size`` frames, oldest first (written and read by the loop)."""
+
+    def __init__(self, size: int = 1000) -> None:
+        if size < 1:
+            raise ValueError(f"ScreenTimeline size must be >= 1, got {size!r}")
+        self._shown: deque[Shown] = deque(maxlen=size)
+
+    def shown(self, wall: float, sim: float, episode: int, step: int) -> None:
+        """Record a frame shown at ``wall`` of the state at simulated time ``sim``."""
+        self._shown.append(Shown(float(wall), float(sim), int(episode), int(step)))
+
+    def at(self, wall: float) -> Shown | None:
+        """The frame on screen at ``wall``: the last shown at or before it (the oldest kept if ``wall`` is
+        older; None if nothing was shown yet)."""
+        for shown in reversed(self._shown):
+            if shown.wall <= wall:
+                return shown
+        return self._shown[0] if self._shown else None
+
+    def __iter__(self) -> Iterator[Shown]:
+        return iter(self._shown)
+
+    def __len__(self) -> int:
+        return len(self._shown)
+
+
+class BrowserKeeperTrainer:
+    """A person in the browser, as the keepers' trainer (the ``KeeperTrainer`` protocol) of one field.
+
+    ``give`` returns no events: a person does not judge on a schedule. ``poll`` drains the page's queue,
+    places each press on the field's simulated clock (see the module's docstring), logs it with that time
+    and returns one event per call; the others wait for the next calls (``FusedKeepers`` takes one event
+    per field per call, and a press credited in the past is due at once whenever it is delivered).
+
+    :param session: the page's session; its queue holds the presses (``human:browser``, stamped with the
+        wall clock).
+    :param fields: B, the fields of the run (the person watches ``field``; the others get nothing).
+    :param log: the feedback log every event goes to, with its simulated time and the run's session.
+    :param timeline: what the page showed when (the watcher writes it).
+    :param reaction_s: r, the reaction delay the mapping centres the credit on (seconds).
+    :param field: the watched field.
+    """
+
+    source = SOURCE
+
+    def __init__(
+        self,
+        session: TeachingSession,
+        fields: int = 1,
+        log: FeedbackLog | None = None,
+        timeline: ScreenTimeline | None = None,
+        reaction_s: float = REACTION_S,
+        field: int = 0,
+    ) -> None:
+        if not 0 <= field < fields:
+            raise ValueError(f"BrowserKeeperTrainer field={field} is not one of the run's {fields} fields")
+        if not reaction_s >= 0:
+            raise ValueError(f"BrowserKeeperTrainer reaction_s must be >= 0 seconds, got {reaction_s!r}")
+        self.session = session
+        self.queue: FeedbackQueue = session.queue
+        self.fields, self.field = fields, field
+        self.log = log
+        self.timeline = ScreenTimeline() if timeline is None else timeline
+        self.reaction_s = float(reaction_s)
+        self.waiting: deque[FeedbackEvent] = deque()
+        self.given = 0
+        self.positive = 0
+
+    def new_episodes(self, starting: Tensor) -> None:
+        """Nothing to draw: the person comes and goes through the page."""
+
+    def give(
+        self, obs: Tensor, action: Tensor, deciding: Tensor, time: Tensor, keeper: Tensor | None = None
+    ) -> tuple[Tensor, Tensor]:
+        """No events at decisions (values and times [B] of zeros): presses come through ``poll``."""
+        b = action.shape[0]
+        return torch.zeros(b, dtype=torch.float64), torch.zeros(b, dtype=torch.float64)
+
+    def credit_time(self, wall: float, now: float) -> tuple[float, int, int]:
+        """The simulated time a press at ``wall`` is credited at, given the field's clock ``now``, and the
+        episode and decision then on screen (-1 when nothing was shown yet)."""
+        seen = self.timeline.at(wall - self.reaction_s)
+        if seen is None:
+            return now, -1, -1
+        return min(seen.sim + self.reaction_s, now), seen.episode, seen.step
+
+    def poll(self, clock: Tensor) -> tuple[Tensor, Tensor]:
+        """The next press on the watched field: values [B] float64 (0: none) and simulated times [B]."""
+        pressed = self.queue.drain()
+        if pressed:
+            now = float(clock[self.field])
+            credited = []
+            for ev in pressed:
+                t, episode, step = self.credit_time(ev.time, now)
+                credited.append(
+                    FeedbackEvent(time=t, value=ev.value, source=ev.source, step=step, episode=episode)
+                )
+            if self.log is not None:
+                credited = self.log.extend(credited)
+            self.waiting.extend(credited)
+            self.given += len(credited)
+            self.positive += sum(ev.value > 0 for ev in credited)
+        values = torch.zeros(self.fields, dtype=torch.float64)
+        times = torch.zeros(self.fields, dtype=torch.float64)
+        if self.waiting:
+            ev = self.waiting.popleft()
+            values[self.field], times[self.field] = ev.value, ev.time
+        return values, times
+
+    def state_dict(self) -> dict[str, Any]:
+        """The counts (presses not yet delivered are dropped with the episodes in progress)."""
+        return {"given": self.given, "positive": self.positive}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Continue the counts of a saved run."""
+        try:
+            self.given, self.positive = int(state["given"]), int(state["positive"])
+        except (KeyError, TypeError, ValueError) as e:
+            raise CheckpointError(f"bad browser-trainer state in the checkpoint ({e!r})") from None
+
+
+def _round(xy: list[float]) -> list[float]:
+    return [round(xy[0], 2), round(xy[1], 2)]
+
+
+class KeepawayWatcher:
+    """Shows the watched field on the page, paces the loop while a person teaches, draws the curve.
+
+    Call :meth:`attach` with the env's simulator (frames and pacing, every cycle) and pass the watcher as
+    ``run_sarsa_keepers(..., watch=)`` (episode ends, every env step).
+
+    :param trainer: the browser trainer; the watcher uses its session (speed, pause, presence, frames,
+        curve) and writes its timeline.
+    :param records: the run's records (the field's clock, episode and decisions).
+    :param config: the task (region, decision period).
+    :param human: the fusion, for the trust weight on the page (None: not shown).
+    :param curve_every: episodes per point of the page's learning curve (mean hold time).
+    :param frame_s: wall seconds between frames while nobody teaches.
+    """
+
+    def __init__(
+        self,
+        trainer: BrowserKeeperTrainer,
+        records: KeepawayRecords,
+        config: KeepawayConfig,
+        human: FusedKeepers | None = None,
+        curve_every: int = 10,
+        frame_s: float = UNPACED_FRAME_S,
+    ) -> None:
+        if curve_every < 1:
+            raise ValueError(f"KeepawayWatcher curve_every must be >= 1, got {curve_every!r}")
+        self.session, self.trainer, self.records = trainer.session, trainer, records
+        self.config, self.human = config, human
+        self.field = trainer.field
+        self.curve_every, self.frame_s = curve_every, frame_s
+        self.cycle_share = 1.0 / config.decision_period_cycles  # of one paced "action"
+        self.recent: deque[float] = deque(maxlen=RECENT_EPISODES)
+        self.block: list[float] = []
+        self.action = "-"
+        self.target = -1
+        self.frames = 0
+        self._last_frame = -math.inf
+
+    @property
+    def real_time_speed(self) -> float:
+        """The page's speed that plays at real time (decision periods per second)."""
+        return CYCLES_PER_SECOND / self.config.decision_period_cycles
+
+    def attach(self, sim: KeepawaySimulator) -> None:
+        """Wrap ``sim.step`` so that every cycle ends in :meth:`cycle`."""
+        step = sim.step
+
+        def step_and_show(*args: Any, **kwargs: Any) -> Any:
+            out = step(*args, **kwargs)
+            self.cycle(sim.state)
+            return out
+
+        sim.step = step_and_show  # type: ignore[method-assign]
+
+    def cycle(self, state: KeepawayState) -> None:
+        """After a simulator cycle: wait for its turn while a person teaches, then show it."""
+        if self.session.clients == 0:
+            return
+        f = self.field
+        cycles = int(state.episode_cycles[f])
+        holder = int(state.prev_holder[f])
+        if holder >= 0 and int(state.last_decision[f, holder]) == cycles - 1:  # decided this cycle
+            self.target = int(state.pass_target[f])
+            self.action = (
+                f"keeper {holder + 1} holds the ball"
+                if self.target < 0
+                else f"keeper {holder + 1} passes to keeper {self.target + 1}"
+            )
+        teaching = self.session.teaching()
+        if teaching:
+            wall = self.session.wait_turn(self.cycle_share)
+        else:
+            wall = self.session.clock()
+            if wall - self._last_frame < self.frame_s:
+                return
+        sim = (int(self.records.finished_cycles[f]) + cycles) / CYCLES_PER_SECOND
+        episode = int(self.records.episodes[f])
+        step = int(self.records.decisions[f].sum()) - 1
+        self.session.publish(self.frame(state, teaching))
+        self.trainer.timeline.shown(wall, sim, episode, step)
+        self._last_frame = wall
+        self.frames += 1
+
+    def frame(self, state: KeepawayState, teaching: bool = True) -> dict[str, Any]:
+        """What the page draws of the watched field now (JSON-able)."""
+        f, n, c = self.field, self.config.keepers, self.config
+        pos = state.pos[f].tolist()
+        ball, keepers, takers = pos[0], pos[1 : 1 + n], pos[1 + n :]
+        dist = [math.dist(k, ball) for k in keepers]
+        nearest = min(range(n), key=dist.__getitem__)
+        holder = nearest if dist[nearest] <= c.physics.kickable_distance else -1
+        weight = None if self.human is None else float(self.human.schedule.value()[f])
+        if not teaching:
+            text = "you're away: the keepers learn on their own at full speed"
+        elif self.session.paused:
+            text = "paused"
+        else:
+            trust = "" if weight is None else f" (trust in your feedback: {weight:.2f})"
+            text = f"watching you teach{trust}"
+        return {
+            "type": "keepaway",
+            "region": [c.length, c.width],
+            "keepers": [_round(p) for p in keepers],
+            "takers": [_round(p) for p in takers],
+            "ball": _round(ball),
+            "holder": holder,
+            "target": self.target if holder < 0 else -1,
+            "action": self.action,
+            "episode": int(self.records.episodes[f]) + 1,
+            "time_s": int(state.episode_cycles[f]) / CYCLES_PER_SECOND,
+            "mean_hold_s": sum(self.recent) / len(self.recent) if self.recent else None,
+            "weight": weight,
+            "real_time": self.real_time_speed,
+            "text": text,
+        }
+
+    def __call__(self, td: TensorDictBase) -> None:
+        """After an env step (``watch`` of ``run_sarsa_keepers``): the hold time of an episode that ended,
+        and a point of the curve every ``curve_every`` episodes."""
+        after = td["next"]
+        f = self.field
+        if not bool(after[keys.DONE].reshape(-1)[f]):
+            return
+        self.action, self.target = "-", -1
+        seconds = int(after[keys.EPISODE_CYCLES].reshape(-1)[f]) / CYCLES_PER_SECOND
+        self.recent.append(seconds)
+        self.block.append(seconds)
+        if len(self.block) >= self.curve_every:
+            self.session.add_point(int(self.records.episodes[f]) + 1, sum(self.block) / len(self.block))
+            self.block.clear()
+
+
+def watch_field(
+    env: KeepawayEnv, records: KeepawayRecords, human: FusedKeepers, curve_every: int = 10
+) -> KeepawayWatcher:
+    """The watcher of a run taught through the browser (``human.trainer`` a :class:`BrowserKeeperTrainer`
+    with a session), attached to ``env``'s simulator."""
+    trainer = human.trainer
+    if not isinstance(trainer, BrowserKeeperTrainer):
+        raise TypeError(f"watch_field needs a BrowserKeeperTrainer, got {type(trainer).__name__}")
+    watcher = KeepawayWatcher(trainer, records, env.config, human, curve_every)
+    watcher.attach(env.sim)
+    return watcher
+
+
+def wait_for_teacher(cfg: DictConfig, teaching: LiveTeaching) -> None:
+    """Print the page's URL to stderr and wait up to ``trainer.wait_for_page_s`` for it to open."""
+    wait = float(cfg.trainer.wait_for_page_s)
+    tqdm.write(f"Teach the agent in your browser: {teaching.url}", file=sys.stderr)
+    if wait > 0:
+        tqdm.write(f"Waiting up to {wait:g} s for the page to open...", file=sys.stderr)
+        if not teaching.session.wait_for_page(wait):
+            tqdm.write("No page opened: the keepers learn on their own until one does.", file=sys.stderr)

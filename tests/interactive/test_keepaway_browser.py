@@ -1,0 +1,218 @@
+"""The keepaway browser trainer: presses on the simulated clock, credit into H^, pacing, frames, config."""
+
+from __future__ import annotations
+
+import json
+import threading
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from tensordict import TensorDict
+
+from hfrl_torch import keys
+from hfrl_torch.agents.sarsa.fused_keepers import FusedKeepers
+from hfrl_torch.agents.tamer.keeper_tamer import KeeperTamer
+from hfrl_torch.app import CONF_DIR, implied_overrides
+from hfrl_torch.common.errors import ConfigError
+from hfrl_torch.envs.keepaway import KeepawayConfig, KeepawayEnv
+from hfrl_torch.envs.keepaway.simulator import KeepawaySimulator
+from hfrl_torch.experiment.factories import validate_train_config
+from hfrl_torch.experiment.keepaway_sarsa import KeepawayRecords, make_sarsa_keepers, run_sarsa_keepers
+from hfrl_torch.feedback.events import FeedbackEvent
+from hfrl_torch.feedback.log import FeedbackLog, load_feedback_log
+from hfrl_torch.fusion.schedules import ConstantWeight
+from hfrl_torch.interactive.keepaway_live import BrowserKeeperTrainer, KeepawayWatcher, watch_field
+from hfrl_torch.interactive.live import DEFAULT_SPEED
+from hfrl_torch.interactive.messages import Feedback, Presence
+from hfrl_torch.interactive.session import TeachingSession
+from hfrl_torch.models.tile_coding import TileCoding
+
+CONFIG = KeepawayConfig(decision_period_cycles=5)
+
+
+def _fake_clock(start: float = 100.0) -> tuple[list[float], list[float], TeachingSession]:
+    clock, slept = [start], []
+
+    def sleep(s: float) -> None:
+        slept.append(s)
+        clock[0] += s
+
+    return clock, slept, TeachingSession(actions_per_s=2.0, clock=lambda: clock[0], sleep=sleep)
+
+
+def _press(session: TeachingSession, wall: float, value: float) -> None:
+    session.queue.put(FeedbackEvent(time=wall, value=value, source="human:browser"))
+
+
+def test_presses_are_placed_on_the_fields_simulated_clock_and_logged(tmp_path):
+    _, _, session = _fake_clock()
+    log = FeedbackLog(tmp_path / "feedback.jsonl", session="run1")
+    trainer = BrowserKeeperTrainer(session, fields=2, log=log)
+    now = torch.tensor([5.6, 9.0], dtype=torch.float64)
+    _press(session, 99.0, 1.0)  # before anything was shown: credited now
+    values, times = trainer.poll(now)
+    assert values.tolist() == [1.0, 0.0] and times.tolist() == [5.6, 0.0]
+    for i in range(4):  # frames at real time: 10 per second
+        trainer.timeline.shown(100.0 + i / 10, 5.0 + i / 10, episode=3, step=6 + i // 2)
+    _press(session, 100.45, 1.0)  # the frame on screen 0.3 s before showed 5.1 s: credited at 5.4 s
+    _press(session, 100.65, -1.0)  # 0.3 s before: 5.3 s; 5.6 s is past the field's clock: credited at it
+    now = torch.tensor([5.5, 9.0], dtype=torch.float64)
+    assert trainer.poll(now)[1].tolist() == pytest.approx([5.4, 0.0])  # one press per poll...
+    values, times = trainer.poll(now)
+    assert values.tolist() == [-1.0, 0.0] and times.tolist() == pytest.approx([5.5, 0.0])  # ...in order
+    assert trainer.poll(now)[0].tolist() == [0.0, 0.0]
+    assert trainer.give(torch.zeros(2, 13), torch.zeros(2), torch.ones(2), torch.zeros(2))[0].eq(0).all()
+    log.close()
+    events = load_feedback_log(tmp_path / "feedback.jsonl")
+    assert [e.time for e in events] == pytest.approx([5.6, 5.4, 5.5])
+    assert [(e.value, e.episode, e.step) for e in events] == [(1.0, -1, -1), (1.0, 3, 6), (-1.0, 3, 7)]
+    assert {(e.source, e.session) for e in events} == {("human:browser", "run1")}
+    assert trainer.state_dict() == {"given": 3, "positive": 2}
+    again = BrowserKeeperTrainer(session)
+    again.load_state_dict(trainer.state_dict())
+    assert again.given == 3
+
+
+def test_a_press_credits_the_decisions_in_its_window_in_h_hat():
+    _, _, session = _fake_clock()
+    trainer = BrowserKeeperTrainer(session)
+    model = TileCoding([1.0, 1.0], num_actions=3, learners=1, tilings=4, size=2**12)
+    fk = FusedKeepers(
+        "linear", ConstantWeight([0.5]), KeeperTamer(model, 1, alpha=1.0), trainer, 3, torch.zeros(3).long()
+    )
+    tiles = [model.tiles(torch.tensor([[x, x]]))[:, 0] for x in (0.0, 5.0, 10.0)]  # disjoint tiles
+    for t, tile in zip((3.0, 4.5, 5.2), tiles, strict=True):
+        fk.decided(torch.tensor([0]), torch.tensor([0]), torch.tensor([0]), tile, torch.zeros(1, 13),
+                   torch.tensor([t]))  # fmt: skip
+    trainer.timeline.shown(200.0, 5.1, 0, 2)
+    _press(session, 200.3, 1.0)  # credited at 5.1 + 0.3 = 5.4 s: the 500 ms window reaches back to 4.9 s
+    fk.deliver(torch.tensor([5.6], dtype=torch.float64))
+    h = [model(torch.tensor([0]), tile).item() for tile in tiles]
+    assert h[0] == 0.0 and h[1] > 0 and h[2] > 0  # the decision of 3.0 s ended at 4.5 s: no credit
+    assert fk.feedback.tolist() == [1] and fk.positive.tolist() == [1]
+
+
+def test_watcher_paces_while_taught_and_runs_free_when_nobody_watches():
+    clock, slept, session = _fake_clock()
+    sim = KeepawaySimulator(1, CONFIG, seed=0)
+    trainer = BrowserKeeperTrainer(session)
+    watcher = KeepawayWatcher(trainer, KeepawayRecords(1, 3), CONFIG)
+    watcher.attach(sim)
+    sim.step()  # nobody has the page open: no frame, no wait
+    assert watcher.frames == 0 and not slept
+    session.connect()
+    for _ in range(10):
+        sim.step()
+    assert watcher.frames == 10 and slept == pytest.approx([0.1] * 9)  # real time at speed 2: 10 cycles/s
+    assert [s.sim for s in trainer.timeline] == pytest.approx([0.2 + i / 10 for i in range(10)])
+    session.apply(Presence(here=False))  # "I'm away": full speed, a frame now and then
+    for _ in range(20):
+        sim.step()
+    assert len(slept) == 9 and watcher.frames == 10  # the fake clock stands still: no frame due yet
+    clock[0] += 0.25
+    sim.step()
+    assert watcher.frames == 11 and "away" in session.latest()[1]["text"]
+    session.apply(Presence(here=True))
+    session.paused = True
+    stepper = threading.Thread(target=sim.step)
+    stepper.start()
+    stepper.join(timeout=0.3)
+    assert stepper.is_alive()  # paused while the person watches
+    session.disconnect()  # the page closes: the pause ends with it
+    stepper.join(timeout=5)
+    assert not stepper.is_alive()
+
+
+def test_frame_has_what_the_page_draws_and_the_curve_gets_hold_times():
+    _, _, session = _fake_clock()
+    session.connect()
+    records = KeepawayRecords(1, 3)
+    model = TileCoding([1.0, 1.0], num_actions=3, learners=1, tilings=4, size=2**12)
+    trainer = BrowserKeeperTrainer(session)
+    human = FusedKeepers(
+        "linear", ConstantWeight([0.75]), KeeperTamer(model, 1), trainer, 3, torch.zeros(3).long()
+    )
+    sim = KeepawaySimulator(1, CONFIG, seed=1)
+    watcher = KeepawayWatcher(trainer, records, CONFIG, human, curve_every=2)
+    watcher.attach(sim)
+    for _ in range(3):
+        sim.step(torch.tensor([1]))
+    frame = json.loads(json.dumps(session.latest()[1]))
+    assert frame["type"] == "keepaway" and frame["region"] == [20.0, 20.0]
+    assert len(frame["keepers"]) == 3 and len(frame["takers"]) == 2 and len(frame["ball"]) == 2
+    assert -1 <= frame["holder"] < 3 and -1 <= frame["target"] < 3
+    assert frame["time_s"] == pytest.approx(0.3) and frame["episode"] == 1 and frame["weight"] == 0.75
+    assert frame["real_time"] == 2.0 and isinstance(frame["action"], str)
+    for seconds in (6.0, 8.0):
+        ended = {keys.DONE: torch.tensor([[True]]), keys.EPISODE_CYCLES: torch.tensor([int(seconds * 10)])}
+        watcher(TensorDict({"next": ended}, batch_size=[1]))
+    assert session.latest_curve()[1]["curve"] == [[1.0, 7.0]]
+    sim.step()
+    assert json.loads(json.dumps(session.latest()[1]))["mean_hold_s"] == 7.0
+
+
+def test_a_taught_loop_learns_from_presses_at_real_time(tmp_path):
+    clock, _, session = _fake_clock(0.0)
+    presses = [(3.0, 1.0), (6.0, -1.0), (9.0, 1.0)]
+
+    def sleep(s: float) -> None:  # the person presses while the keepers play
+        clock[0] += s
+        while presses and presses[0][0] <= clock[0]:
+            session.apply(Feedback(presses.pop(0)[1]))
+
+    session.sleep = sleep
+    session.connect()
+    log = FeedbackLog(tmp_path / "feedback.jsonl", session="live")
+    agent = make_sarsa_keepers(CONFIG, 1, size=2**12)
+    model = TileCoding(agent.coder.widths.tolist(), 3, learners=1, tilings=32, size=2**12)
+    trainer = BrowserKeeperTrainer(session, log=log)
+    human = FusedKeepers(
+        "linear", ConstantWeight([0.5]), KeeperTamer(model, 1), trainer, 3, torch.zeros(3).long()
+    )
+    env = KeepawayEnv(1, CONFIG, seed=0, sync="any")
+    records = KeepawayRecords(1, 3)
+    watcher = watch_field(env, records, human)
+    run_sarsa_keepers(env, agent, records, cycles=150, human=human, watch=watcher)
+    assert 14.85 <= clock[0] <= 17.0  # 150+ cycles at real time: the last step may run a few more
+    assert not presses and human.feedback.tolist() == [3] and model.weight.abs().sum() > 0
+    log.close()
+    events = load_feedback_log(tmp_path / "feedback.jsonl")
+    assert [e.value for e in events] == [1.0, -1.0, 1.0] and {e.source for e in events} == {"human:browser"}
+    assert [e.time for e in events] == pytest.approx([3.1, 6.1, 9.1], abs=0.11)  # wall = sim, one frame late
+
+
+def _cfg(*overrides: str):
+    with initialize_config_dir(str(CONF_DIR), version_base=None):
+        return compose("train", overrides=["domain=keepaway", "agent=sarsa", "human=tile_coded", *overrides])
+
+
+def test_config_of_the_keepaway_browser_trainer():
+    assert implied_overrides(["domain=keepaway", "trainer=interactive"])[-1] == "agent.learners=1"
+    assert "agent.learners=1" not in implied_overrides(
+        ["domain=keepaway", "trainer=interactive", "agent.learners=4"]
+    )
+    cfg = _cfg("trainer=interactive", "agent.learners=1")
+    validate_train_config(cfg)
+    assert (
+        cfg.fusion.name == "linear" and cfg.trainer.actions_per_s is None and DEFAULT_SPEED["keepaway"] == 2.0
+    )
+    validate_train_config(_cfg("trainer=interactive", "agent.learners=1", "fusion=human_only"))
+    for overrides, message in [
+        (["agent.learners=4"], "agent.learners=4 with trainer=interactive: one person teaches one team"),
+        (["agent.learners=1", "trainer.port=70000"], "trainer.port=70000 is invalid"),
+        (["agent.learners=1", "trainer.actions_per_s=0.1"], "trainer.actions_per_s=0.1 is invalid"),
+        (["agent.learners=1", "agent.fields_per_learner=2"], "one trainer watches one field"),
+    ]:
+        with pytest.raises(ConfigError, match=message) as info:
+            validate_train_config(_cfg("trainer=interactive", *overrides))
+        assert "\n" not in str(info.value)
+
+
+def test_watch_field_needs_the_browser_trainer():
+    model = TileCoding([1.0, 1.0], num_actions=3, learners=1, tilings=4, size=2**12)
+    human = FusedKeepers(
+        "linear", ConstantWeight([0.5]), KeeperTamer(model, 1), None, 3, torch.zeros(3).long()
+    )
+    with pytest.raises(TypeError, match="BrowserKeeperTrainer"):
+        watch_field(KeepawayEnv(1, CONFIG, sync="any"), KeepawayRecords(1, 3), human)
