@@ -23,10 +23,12 @@ from hfrl_torch.experiment.keepaway_sarsa import (
     train_sarsa,
 )
 from hfrl_torch.feedback.credit import PreviousStep
-from hfrl_torch.feedback.log import load_feedback_log
+from hfrl_torch.feedback.events import FeedbackEvent
+from hfrl_torch.feedback.log import FeedbackLog, load_feedback_log
 from hfrl_torch.fusion.schedules import ConstantWeight, TrustWeight
 from hfrl_torch.models.tile_coding import TileCoding
 from hfrl_torch.trainers.keepaway_oracle import KeepawayOracle
+from hfrl_torch.trainers.keepaway_replay import KeepawayReplay
 
 
 def _cfg(*overrides: str):
@@ -201,7 +203,7 @@ def test_config_checks_and_implied_choices():
     for overrides, message in [
         (["trainer=none"], "choose trainer=oracle"),
         (["agent.fields_per_learner=2"], "one trainer watches one field"),
-        (["trainer=replay"], "not available for keepaway"),
+        (["trainer=value_proxy"], "not available for keepaway"),
         (["trainer.timing.tail_lines=5"], "Tetris option"),
         (["human.model=crowd"], "human.model='crowd' is invalid"),
         (["fusion.weight=-1"], "fusion.weight=-1"),
@@ -232,3 +234,50 @@ def test_train_with_a_trainer_logs_feedback_and_resumes(tmp_path):
     train_sarsa(_cfg(*small, "agent.hours=0.012"), tmp_path, checkpoint=ckpt)
     again = load_checkpoint(tmp_path)["state"]["human"]
     assert int(again["feedback"].sum()) > int(ckpt["state"]["human"]["feedback"].sum())
+
+
+def test_replay_gives_each_fields_events_when_its_clock_passes_them(tmp_path):
+    events = [
+        FeedbackEvent(time=2.0, value=1.0, source="simulated:keepaway_oracle", session="s/board1"),
+        FeedbackEvent(time=1.0, value=-1.0, source="simulated:keepaway_oracle", session="s/board1"),
+        FeedbackEvent(time=1.5, value=1.0, source="human:browser", session="person"),  # one field: to all
+    ]
+    log = FeedbackLog(tmp_path / "feedback.jsonl", session="new")
+    replay = KeepawayReplay(events, fields=2, log=log)
+    values, times = replay.poll(torch.tensor([1.6, 1.2]))
+    assert values.tolist() == [1.0, -1.0] and times.tolist() == [1.5, 1.0]
+    assert replay.poll(torch.tensor([1.6, 1.2]))[0].tolist() == [0.0, 0.0]  # nothing else due yet
+    assert replay.poll(torch.tensor([9.0, 9.0]))[0].tolist() == [0.0, 1.0]  # field 1: 1.5 s
+    saved = replay.state_dict()
+    assert replay.poll(torch.tensor([9.0, 9.0]))[0].tolist() == [0.0, 1.0]  # field 1: 2.0 s
+    assert replay.poll(torch.tensor([99.0, 99.0]))[0].tolist() == [0.0, 0.0]  # all given
+    again = KeepawayReplay(events, fields=2)
+    again.load_state_dict(saved)
+    assert again.poll(torch.tensor([9.0, 9.0]))[1].tolist() == [0.0, 2.0]
+    log.close()
+    logged = load_feedback_log(tmp_path / "feedback.jsonl")
+    assert len(logged) == 4 and {e.source for e in logged} == {"replay"}  # field 0: 1; field 1: 3
+    assert [e.session for e in logged[:2]] == ["new/board0", "new/board1"]
+
+
+def test_a_recorded_run_replays_into_a_new_one_and_the_oracle_can_follow_a_checkpoint(tmp_path):
+    small = ["agent.learners=2", "agent.table_bits=12", "agent.log_minutes=0.1", "agent.hours=0.004"]
+    first = tmp_path / "first"
+    first.mkdir()
+    recorded = train_sarsa(_cfg(*small), first)["feedback_events"]
+    second = tmp_path / "second"
+    second.mkdir()
+    final = train_sarsa(_cfg(*small, "trainer=replay", f"trainer.log={first / 'feedback.jsonl'}"), second)
+    replayed = load_feedback_log(second / "feedback.jsonl")
+    assert 0 < final["feedback_events"] <= recorded and len(replayed) == final["feedback_events"]
+    assert {e.source for e in replayed} == {"replay"}
+    assert load_checkpoint(second)["state"]["human"]["human_weight"].abs().sum() > 0
+
+    judged = tmp_path / "judged"
+    judged.mkdir()
+    final = train_sarsa(_cfg(*small, f"trainer.reference={first}"), judged)
+    assert final["feedback_events"] > 0
+    with pytest.raises(ConfigError, match=r"trainer\.reference='nowhere' is invalid"):
+        check_keepaway_feedback(_cfg("trainer.reference=nowhere"))
+    with pytest.raises(ConfigError, match=r"needs trainer\.log"):
+        check_keepaway_feedback(_cfg("trainer=replay"))

@@ -217,6 +217,11 @@ def make_trainer(cfg: DictConfig, log: FeedbackLog | None):
     if name == "none":
         return None
     reaction = require_float(cfg, "trainer.reaction", 1e-6)
+    if OmegaConf.select(cfg, "trainer.reference") not in (None, "dellacherie"):
+        raise ConfigError(
+            f"trainer.reference={cfg.trainer.reference!r} is invalid for Tetris; allowed: null "
+            "(Dellacherie's weights; learned references are a keepaway option)"
+        )
     if name == "oracle":
         base = OracleTrainer(
             frequency=require_float(cfg, "trainer.frequency", 0.0, 1.0),

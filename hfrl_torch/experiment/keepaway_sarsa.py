@@ -57,6 +57,7 @@ from hfrl_torch.feedback.credit import GammaDelay
 from hfrl_torch.feedback.log import FeedbackLog
 from hfrl_torch.models.tile_coding import MAX_SIZE, TileCoding, keepaway_tile_widths
 from hfrl_torch.trainers.keepaway_oracle import KeepawayOracle
+from hfrl_torch.trainers.keepaway_replay import KeepawayReplay
 
 CYCLES_PER_SECOND = 10
 CYCLES_PER_MINUTE = 60 * CYCLES_PER_SECOND
@@ -369,7 +370,7 @@ def check_sarsa(cfg: DictConfig) -> None:
         )
 
 
-KEEPAWAY_TRAINERS = ("none", "oracle", "interactive")
+KEEPAWAY_TRAINERS = ("none", "oracle", "replay", "interactive")
 
 
 def check_keepaway_feedback(cfg: DictConfig) -> None:
@@ -413,6 +414,16 @@ def check_keepaway_feedback(cfg: DictConfig) -> None:
     fusion_scaling(cfg)
     if trainer == "interactive":
         return
+    if trainer == "replay":
+        if not OmegaConf.select(cfg, "trainer.log"):
+            raise ConfigError("trainer=replay needs trainer.log=<feedback log file>")
+        return
+    reference = OmegaConf.select(cfg, "trainer.reference")
+    if reference not in (None, "hand") and not Path(str(reference)).exists():
+        raise ConfigError(
+            f"trainer.reference={reference!r} is invalid; allowed: null or hand (the hand-coded keepers), "
+            "or a keepaway run directory or checkpoint"
+        )
     require_float(cfg, "trainer.frequency", 0.0, 1.0)
     require_float(cfg, "trainer.consistency", 0.0, 1.0)
     require_float(cfg, "trainer.reaction", 1e-6)
@@ -438,6 +449,29 @@ def fusion_scaling(cfg: DictConfig) -> str:
     if isinstance(value, bool):
         return "decision" if value else "none"
     raise ConfigError(f"fusion.normalise={value!r} is invalid; allowed: true, false, spread, null")
+
+
+def _reference_keepers(cfg: DictConfig, config: KeepawayConfig):
+    """The oracle's reference: None (the hand-coded keepers) or a learned checkpoint's greedy keepers as
+    ``(obs, keeper) -> actions`` (field f is judged against the checkpoint's team f % its teams)."""
+    from hfrl_torch.agents.sarsa.policy import load_keeper_policy
+    from hfrl_torch.common.checkpoint import load_checkpoint
+
+    reference = OmegaConf.select(cfg, "trainer.reference")
+    if reference in (None, "hand"):
+        return None
+    ckpt = load_checkpoint(str(reference), domain="keepaway")
+    if (ckpt["domain_config"]["keepers"], ckpt["domain_config"]["takers"]) != (config.keepers, config.takers):
+        raise ConfigError(
+            f"trainer.reference={reference!r} learned {ckpt['domain_config']['keepers']}v"
+            f"{ckpt['domain_config']['takers']}, not {config.keepers}v{config.takers}"
+        )
+    choose, _ = load_keeper_policy(ckpt, "cpu", torch.Generator().manual_seed(int(cfg.seed) + 7))
+
+    def reference_actions(obs: torch.Tensor, keeper: torch.Tensor) -> torch.Tensor:
+        return choose(obs, torch.ones(obs.shape[0], config.num_actions, dtype=torch.bool), keeper)
+
+    return reference_actions
 
 
 def _human_from_config(
@@ -478,6 +512,8 @@ def _human_from_config(
         if session is None:
             raise ValueError("trainer=interactive needs the page's session")
         trainer = BrowserKeeperTrainer(session, fields, log)
+    elif t.name == "replay":
+        trainer = KeepawayReplay.from_log(str(t.log), fields, log)
     else:
         timing = t.timing
         on = bool(timing.enabled)
@@ -494,6 +530,7 @@ def _human_from_config(
             fatigue_tau=None if not on or timing.fatigue_tau is None else float(timing.fatigue_tau),
             positive_bias=float(timing.positive_bias) if on else 0.0,
             absence=float(timing.absence) if on else 0.0,
+            reference=_reference_keepers(cfg, config),
         )
     rows = torch.arange(fields * n)
     owners = rows if per_keeper else torch.div(rows, n, rounding_mode="floor")
@@ -597,12 +634,19 @@ def train_sarsa(cfg: DictConfig, run_dir: Path, checkpoint: dict[str, Any] | Non
             "duration, with its 95 % interval.",
         )
         if human is not None:
-            who = (
-                "human:browser: a PERSON teaching in the browser (trainer=interactive), watching field 0"
-                if person
-                else f"{KeepawayOracle.source}: a SIMULATED trainer (Griffith et al.'s oracle against the "
-                f"hand-coded policy, L={cfg.trainer.frequency}, C={cfg.trainer.consistency}), not a person"
-            )
+            if person:
+                who = (
+                    "human:browser: a PERSON teaching in the browser (trainer=interactive), watching field 0"
+                )
+            elif cfg.trainer.name == "replay":
+                who = f"replay: the events of {cfg.trainer.log}, given again on each field's clock"
+            else:
+                reference = cfg.trainer.reference or "hand"
+                who = (
+                    f"{KeepawayOracle.source}: a SIMULATED trainer (Griffith et al.'s oracle against the "
+                    f"{reference} keepers, L={cfg.trainer.frequency}, C={cfg.trainer.consistency}), "
+                    "not a person"
+                )
             logger.text(
                 "trainer",
                 f"{who}; fusion={cfg.fusion.name}, credit={cfg.human.credit}, H^ per {cfg.human.model}",

@@ -245,8 +245,11 @@ class FusedKeepers:
         A trainer with a ``poll(clock) -> (values [B], times [B])`` method (a person, whose presses come
         whenever they come) is asked for its new events first."""
         poll = getattr(self.trainer, "poll", None)
-        if poll is not None:
-            self._enqueue(*poll(clock))
+        while poll is not None:
+            values, times = poll(clock)
+            if not bool((values != 0).any()):
+                break
+            self._enqueue(values, times)
         due = self.pending_time <= clock.cpu().to(torch.float64).unsqueeze(1)
         while bool(due.any()):
             fields = due.any(1)
