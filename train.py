@@ -19,7 +19,10 @@ def main(cfg: DictConfig) -> float | None:
 
 
 if __name__ == "__main__":
-    sys.argv += implied_overrides(sys.argv[1:])
+    implied = implied_overrides(sys.argv[1:])
+    if implied:
+        print(f"Implied by the command line: {' '.join(implied)}", file=sys.stderr)
+    sys.argv += implied
     check_overrides(sys.argv[1:], "train", validate_train_config)
     sys.argv += resume_log_dir(sys.argv[1:])
     main()

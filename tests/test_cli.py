@@ -139,3 +139,18 @@ def test_resume_refuses_changes_that_redefine_the_run(trained, tmp_path):
     assert "domain.features=dt cannot change when resuming" in out.stderr
     allowed = "allowed: agent.iterations, agent.hours, agent.episodes, threads, device, logger.backend"
     assert allowed in out.stderr
+
+
+def test_keepaway_with_a_simulated_trainer_then_evaluate_its_checkpoint(tmp_path):
+    run_dir = tmp_path / "keepaway"
+    small = ["agent.learners=2", "agent.table_bits=12", "agent.hours=0.004", "agent.log_minutes=0.1"]
+    out = run("train.py", "domain=keepaway", "fusion=linear", *small, f"hydra.run.dir={run_dir}")
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "Implied by the command line: agent=sarsa human=tile_coded trainer=oracle" in out.stderr
+    assert "events of the simulated oracle trainer (fusion=linear" in out.stderr
+    assert f"Curves:           {run_dir / 'metrics.jsonl'}" in out.stderr
+    assert f"evaluate.py domain=keepaway policy={run_dir}" in out.stderr
+    ev = run("evaluate.py", "domain=keepaway", f"policy={run_dir}", "episodes=8", "domain.batch=4")
+    assert ev.returncode == 0, ev.stderr[-2000:]
+    result = json.loads(ev.stdout.strip().splitlines()[-1])
+    assert result["episodes"] == 8 and result["teams"] == 2 and result["mean_s"] > 0

@@ -150,6 +150,14 @@ def train(cfg: DictConfig) -> TrainResult:
             f"episodes last {final['episode_s_mean']:.2f} s (95% CI {low:.2f}..{high:.2f}; last "
             f"{cfg.agent.log_minutes:g} simulated minutes, exploring)"
         )
+        if "feedback_events" in final:
+            who = TRAINER_LABELS.get(cfg.trainer.name, cfg.trainer.name)
+            weight = final.get("fusion/weight_mean", 0.0)
+            lines.append(
+                f"Feedback:         {final['feedback_events']:.0f} events of the {who} "
+                f"(fusion={cfg.fusion.name}, mean weight on H^ {weight:.2f})"
+            )
+            lines.append(f"Feedback log:     {run_dir / 'feedback.jsonl'}")
         lines.append(f"Curves:           {run_dir / 'metrics.jsonl'}")
     elif final and agent == "cem":
         low, high = final["eval/mean_policy_lines_ci95_low"], final["eval/mean_policy_lines_ci95_high"]
