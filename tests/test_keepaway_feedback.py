@@ -171,7 +171,7 @@ def test_oracle_timing_options():
     assert bool((values == 1).all())
 
 
-def _tiny_run(scheme: str, seed: int = 0) -> tuple[FusedKeepers, KeepawayRecords]:
+def _tiny_run(scheme: str, seed: int = 0, cycles: int = 200) -> tuple[FusedKeepers, KeepawayRecords]:
     config = KeepawayConfig(decision_period_cycles=5)
     agent = make_sarsa_keepers(config, 2, size=2**12, seed=seed)
     model = TileCoding(agent.coder.widths.tolist(), 3, learners=2, tilings=32, size=2**12)
@@ -180,19 +180,19 @@ def _tiny_run(scheme: str, seed: int = 0) -> tuple[FusedKeepers, KeepawayRecords
         scheme, TrustWeight.from_initial(0.5, 2), KeeperTamer(model, 2), oracle, 3, torch.arange(6) // 3
     )
     records = KeepawayRecords(2, 3)
-    run_sarsa_keepers(KeepawayEnv(2, config, seed=seed, sync="any"), agent, records, cycles=400, human=human)
+    run_sarsa_keepers(KeepawayEnv(2, config, seed=seed, sync="any"), agent, records, cycles=cycles, human=human)
     return human, records
 
 
 def test_a_taught_run_learns_h_and_is_deterministic():
     one, rec = _tiny_run("linear")
     two, again = _tiny_run("linear")
-    assert int(one.feedback.sum()) > 20 and one.tamer.model.weight.abs().sum() > 0
+    assert int(one.feedback.sum()) > 10 and one.tamer.model.weight.abs().sum() > 0
     assert torch.equal(one.tamer.model.weight, two.tamer.model.weight)
     assert torch.equal(rec.table, again.table)
     assert one.schedule.value().tolist() != [0.5, 0.5]  # eq. 4.4 ran at the episodes' ends
-    human_only, _ = _tiny_run("human_only")
-    assert not human_only.explores and human_only.tamer.credited_share > 0
+    human_only, _ = _tiny_run("human_only", cycles=60)
+    assert not human_only.explores and human_only.tamer.model.weight.abs().sum() > 0
 
 
 def test_config_checks_and_implied_choices():
