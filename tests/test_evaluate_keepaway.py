@@ -188,7 +188,7 @@ def test_a_fused_checkpoint_chooses_by_its_fusion_rule(fused, scheme, scaling, w
     h = _values_by_hand(ckpt, ckpt["state"]["human"]["human_weight"], obs, team)
     w = torch.tensor(weight, dtype=torch.float64)[team].unsqueeze(1)
     r, hh = (_rescaled(q, mask), _rescaled(h, mask)) if scaling == "decision" else (q, h)
-    if scaling == "spread":
+    if scaling == "spread" and scheme != "exponential":  # the exponential rule fuses raw values
         hh = h * torch.tensor(spread, dtype=torch.float64)[team].unsqueeze(1)
     expected = {
         "linear": lambda: _argmax(r + w * hh, mask),

@@ -180,7 +180,9 @@ def _tiny_run(scheme: str, seed: int = 0, cycles: int = 200) -> tuple[FusedKeepe
         scheme, TrustWeight.from_initial(0.5, 2), KeeperTamer(model, 2), oracle, 3, torch.arange(6) // 3
     )
     records = KeepawayRecords(2, 3)
-    run_sarsa_keepers(KeepawayEnv(2, config, seed=seed, sync="any"), agent, records, cycles=cycles, human=human)
+    run_sarsa_keepers(
+        KeepawayEnv(2, config, seed=seed, sync="any"), agent, records, cycles=cycles, human=human
+    )
     return human, records
 
 

@@ -12,7 +12,8 @@ same tile coding as Q. The keepers choose by the fusion scheme:
   cycles (tens) and H^ in feedback units (about 1), so ``scaling`` puts them on one scale first: ``spread``
   (default) multiplies H^ by the learner's running mean of max_a Q - min_a Q over its decisions (H^ = 1 is
   worth what Q typically separates the actions by), ``decision`` rescales both to [0, 1] over each
-  decision's available actions, ``none`` fuses the raw values;
+  decision's available actions, ``none`` fuses the raw values. The exponential rule scales Q by a factor
+  of H^ alone, so it needs no common scale: under ``spread`` it takes the raw values (Q >= 0 here);
 * ``control_sharing``: argmax H^ with probability min(w, 1), else Q;
 * ``reward_shaping``: Q chooses, and Sarsa learns from r + w H^(s, a) of its previous decision.
 
@@ -158,7 +159,7 @@ class FusedKeepers:
                 return torch.where(follow.unsqueeze(1), h, qc).to(q.device)
             if self.scaling == "decision":
                 r, hh = rescale_range(qc, mk), rescale_range(h, mk)
-            elif self.scaling == "spread":
+            elif self.scaling == "spread" and self.scheme != "exponential":
                 r, hh = qc, h * self._spread(fields.cpu(), qc, mk).unsqueeze(1)
             else:
                 r, hh = qc, h

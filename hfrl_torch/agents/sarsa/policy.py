@@ -9,7 +9,8 @@ w each team had when the checkpoint was written (:class:`FusedKeepers` during tr
 * ``none``, ``reward_shaping``: argmax Q (shaping acts on the reward Sarsa learned from, not the choice);
 * ``human_only``: argmax H^;
 * ``linear``, ``action_biasing``, ``annealed``, ``exponential``: argmax of the fused values, on Q and H^ put
-  on one scale as the run did (``spread``: H^ times the team's Q spread when the checkpoint was written;
+  on one scale as the run did (``spread``: H^ times the team's Q spread when the checkpoint was written,
+  raw values for the exponential rule;
   ``decision``: both rescaled to [0, 1] over the available actions; ``none``: raw);
 * ``control_sharing``: argmax H^ where w >= 0.5, else argmax Q. Training follows H^ with probability
   min(w, 1); evaluation takes that draw's more likely outcome, so a policy plays the same way every time.
@@ -131,7 +132,7 @@ def load_keeper_policy(
                 r, hh = q.to(torch.float64), h
                 if scaling == "decision":
                     r, hh = rescale_range(q, mask), rescale_range(h, mask)
-                elif scaling == "spread":
+                elif scaling == "spread" and scheme != "exponential":
                     hh = h * spread.to(device)[team].unsqueeze(1)
                 values = fuse_values(r, hh, _VALUE_RULE.get(scheme, scheme), wt)
         return greedy_with_random_ties(values, mask, generator).to(obs.device)
