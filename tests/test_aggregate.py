@@ -121,3 +121,45 @@ def test_a_run_of_several_learners_counts_as_one_seed_per_learner(tmp_path):
     assert sorted(int(r.config["seed"]) for r in runs) == [2000, 2001, 2002]
     rows, _ = report(group_runs(runs))
     assert rows[0]["runs"] == 3 and rows[0]["mean"] == pytest.approx(5.0)
+
+
+def test_a_keepaway_run_counts_one_seed_per_team_over_its_episode_budget(tmp_path):
+    import torch
+
+    from hfrl_torch.common.checkpoint import save_checkpoint
+
+    run = tmp_path / "keepers"
+    run.mkdir()
+    agent = (
+        "agent:\n  name: sarsa\n  learners: 2\n  fields_per_learner: 1\n  episodes: 4\n  log_episodes: 2\n"
+    )
+    (run / "config.yaml").write_text("seed: 1\n" + agent)
+    (run / "metrics.jsonl").write_text(
+        json.dumps({"axis": "episodes", "episode": 2, "episode_s_mean": 0}) + "\n"
+    )
+    # field, ordinal, clock at the end, duration (cycles), holds; team 1 played a fifth episode (past budget)
+    rows = [
+        [0, 0, 50, 50, 0],
+        [1, 0, 30, 30, 0],
+        [0, 1, 120, 70, 0],
+        [1, 1, 90, 60, 0],
+        [1, 2, 190, 100, 0],
+        [0, 2, 150, 30, 0],
+        [0, 3, 250, 100, 0],
+        [1, 3, 210, 20, 0],
+        [1, 4, 999, 999, 0],
+    ]
+    state = {"records": {"rows": torch.tensor(rows)}}
+    save_checkpoint(
+        run / "checkpoints" / "last.pt",
+        domain="keepaway",
+        agent="sarsa",
+        config_yaml="",
+        payload={"state": state},
+    )
+    runs, _ = find_runs([tmp_path])
+    assert sorted(int(r.config["seed"]) for r in runs) == [1000, 1001]
+    team0 = next(r for r in runs if r.config["seed"] == 1000).rows
+    team1 = next(r for r in runs if r.config["seed"] == 1001).rows
+    assert [(r["episode"], r["eval/episode_seconds_mean"]) for r in team0] == [(2, 6.0), (4, 6.5)]
+    assert [r["eval/episode_seconds_mean"] for r in team1] == [4.5, 6.0]  # episode 5 is past the budget

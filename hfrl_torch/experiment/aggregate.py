@@ -114,7 +114,8 @@ def find_runs(dirs: list[Path]) -> tuple[list[Run], list[Path]]:
 
 def _keepaway_learners(run: Run, state: dict) -> list[Run]:
     """Keepaway learners' curves from the checkpoint's episode records: each learner's mean episode
-    duration (seconds) over consecutive blocks of ``agent.log_episodes`` of its episodes."""
+    duration (seconds) over consecutive blocks of ``agent.log_episodes`` of its first ``agent.episodes``
+    episodes (all of them when the budget is in hours)."""
     records = state.get("records", {})
     rows = records.get("rows") if isinstance(records, dict) else None
     agent = run.config.get("agent", {})
@@ -129,6 +130,9 @@ def _keepaway_learners(run: Run, state: dict) -> list[Run]:
         mine = rows[rows[:, 0] // per_learner == i]
         mine = mine[mine[:, 1].argsort()]
         seconds = mine[:, 3].double() / 10.0
+        budget = int(agent.get("episodes", 0) or 0)
+        if budget > 0:  # the run stops when its slowest learner has its budget; the others ran on
+            seconds = seconds[:budget]
         full = seconds.shape[0] // block
         if full == 0:
             continue
