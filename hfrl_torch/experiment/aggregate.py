@@ -352,17 +352,18 @@ def plot(groups: list[Group], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7, 4.2), dpi=110)
+    drawn = [g for g in groups if g.y_key]
+    colours = plt.get_cmap("tab10" if len(drawn) <= 10 else "tab20")
+    fig, ax = plt.subplots(figsize=(7, 4.2) if len(drawn) <= 6 else (8, 5.5), dpi=110)
     smoothed = False
-    for g in groups:
-        if not g.y_key:
-            continue
+    for i, g in enumerate(drawn):
         xs, mean, low, high = _curve(g)
         window = max(1, len(xs) // 50)
         mean, low, high = (_smooth(v, window) for v in (mean, low, high))
         smoothed = smoothed or window > 1
-        ax.plot(xs, mean, label=f"{g.label} (n={len(g.runs)})")
-        ax.fill_between(xs, low, high, alpha=0.2)
+        colour = colours(i % colours.N)
+        ax.plot(xs, mean, color=colour, label=f"{g.label} (n={len(g.runs)})")
+        ax.fill_between(xs, low, high, color=colour, alpha=0.15)
     ys = {g.y_key for g in groups if g.y_key}
     xk = {g.x_key for g in groups if g.x_key}
     ax.set_xlabel(", ".join(sorted(xk)) or "x")
