@@ -108,3 +108,23 @@ def test_optuna_sweeper_searches_the_fusion_weight(tmp_path):
     )
     assert out.returncode == 0, out.stderr[-3000:]
     assert "Best parameters: {'fusion.weight':" in out.stdout + out.stderr
+
+
+def test_the_keepaway_experiment_config_sweeps_its_conditions(tmp_path):
+    out = _run(
+        "train.py",
+        "-m",
+        "+experiment=fig5_7",
+        "fusion=none,exponential",
+        "human.credit=gamma",
+        "agent.learners=2",
+        "agent.episodes=2",
+        "agent.log_episodes=1",
+        "agent.table_bits=12",
+        f"hydra.sweep.dir={tmp_path}",
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert out.stderr.count("events of the simulated oracle trainer") == 2
+    assert (tmp_path / "0" / "feedback.jsonl").exists() and (
+        tmp_path / "1" / "checkpoints" / "last.pt"
+    ).exists()

@@ -764,9 +764,16 @@ def train_sarsa(cfg: DictConfig, run_dir: Path, checkpoint: dict[str, Any] | Non
         episode_logger.close()
         if log is not None:
             log.close()
-    timed = [h for h in history if h["axis"] == "hours"]
-    final = dict(timed[-1]) if timed else {}
+    axis = "hours" if budget_cycles > 0 else "episodes"  # the curve of the budget's axis
+    points = [h for h in history if h["axis"] == axis]
+    if points:
+        final = dict(points[-1])
+    elif records.table.shape[0]:  # a run shorter than one point of its curve: all its episodes
+        final = {"axis": axis, "episode": int(records.episodes.min()), **records.summary(records.table)}
+    else:
+        final = {}
     if final:
+        final["hours"] = int(records.learner_clock.min()) / CYCLES_PER_HOUR
         final["wall_s"] = time.perf_counter() - start_wall
         if human is not None:
             final["feedback_events"] = float(human.feedback.sum())

@@ -145,10 +145,16 @@ def train(cfg: DictConfig) -> TrainResult:
         lines.append(f"Interrupted. agent={agent} saves its checkpoint at the end, so there is none.")
     elif final and agent == "sarsa":
         low, high = final["episode_s_ci95_low"], final["episode_s_ci95_high"]
+        if final["axis"] == "hours" and "sim_seconds" in final:
+            window = f"last {cfg.agent.log_minutes:g} simulated minutes"
+        elif "episode" in final and final["episode"] > cfg.agent.log_episodes:
+            window = f"episodes {final['episode'] - cfg.agent.log_episodes + 1}-{final['episode']}"
+        else:
+            window = "all its episodes"
         lines.append(
             f"Done: after {final['hours']:.2f} simulated hours per learner ({cfg.agent.learners} learners), "
-            f"episodes last {final['episode_s_mean']:.2f} s (95% CI {low:.2f}..{high:.2f}; last "
-            f"{cfg.agent.log_minutes:g} simulated minutes, exploring)"
+            f"episodes last {final['episode_s_mean']:.2f} s (95% CI {low:.2f}..{high:.2f}; {window}, "
+            "exploring)"
         )
         if "feedback_events" in final:
             who = TRAINER_LABELS.get(cfg.trainer.name, cfg.trainer.name)
