@@ -451,7 +451,9 @@ def fusion_scaling(cfg: DictConfig) -> str:
     raise ConfigError(f"fusion.normalise={value!r} is invalid; allowed: true, false, spread, null")
 
 
-def _reference_keepers(cfg: DictConfig, config: KeepawayConfig):
+def _reference_keepers(
+    cfg: DictConfig, config: KeepawayConfig
+) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None:
     """The oracle's reference: None (the hand-coded keepers) or a learned checkpoint's greedy keepers as
     ``(obs, keeper) -> actions`` (field f is judged against the checkpoint's team f % its teams)."""
     from hfrl_torch.agents.sarsa.policy import load_keeper_policy

@@ -25,6 +25,7 @@ H^ prefers some action), annealed, or fixed.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any, Protocol
 
 import torch
@@ -121,8 +122,7 @@ class FusedKeepers:
         self.positive = torch.zeros(fields, dtype=torch.int64)
         self.followed_human = 0
         self.early = 0  # events delivered before their time because a field's queue was full
-        self._rows = torch.zeros(0, dtype=torch.int64)
-        self._h = torch.zeros(0, 0, dtype=torch.float64)
+        self._h = torch.zeros(0, 0, dtype=torch.float64)  # H^ of the last decide's rows, for decided()
 
     # ------------------------------------------------------------------ choosing
 
@@ -135,7 +135,7 @@ class FusedKeepers:
         """The current weight w of the learners of ``fields`` [M] (float64)."""
         return self.schedule.value().to(torch.float64)[fields.cpu()]
 
-    def fuse(self, fields: Tensor, keeper: Tensor, mask: Tensor):
+    def fuse(self, fields: Tensor, keeper: Tensor, mask: Tensor) -> Callable[[Tensor, Tensor], Tensor]:
         """The ``fuse(Q, tiles)`` of ``SarsaLambda.decide`` for decisions on ``fields`` [M] by ``keeper`` [M]
         with available actions ``mask`` [M, A]; it also counts the match of argmax H^ and argmax Q."""
         rows = fields * self.keepers + keeper
@@ -145,7 +145,7 @@ class FusedKeepers:
         def fused(q: Tensor, tiles: Tensor) -> Tensor:
             h = self.tamer.values(owners, tiles).to(torch.float64).cpu()
             qc, mk = q.to(torch.float64).cpu(), mask.cpu().to(torch.bool)
-            self._rows, self._h = rows.cpu(), h
+            self._h = h
             self._count_matches(fields.cpu(), qc, h, mk)
             if self.scheme in ("none", "reward_shaping"):
                 return q
