@@ -23,19 +23,10 @@ from hfrl_torch.envs.tetris.rules import TetrisRules
 from hfrl_torch.feedback.credit import CreditModel, GammaDelay, PreviousStep, UniformDelay
 from hfrl_torch.feedback.log import FeedbackLog
 from hfrl_torch.fusion.schedules import AnnealedWeight, ConstantWeight, TrustWeight, WeightSchedule
+from hfrl_torch.fusion.schemes import FUSIONS
 
 DOMAINS = ("tetris", "keepaway")
 AGENTS = ("cem", "tamer", "qlearning", "pg", "sarsa")
-FUSIONS = (
-    "none",
-    "human_only",
-    "linear",
-    "exponential",
-    "annealed",
-    "action_biasing",
-    "control_sharing",
-    "reward_shaping",
-)
 TRAINERS = ("none", "oracle", "value_proxy", "replay", "interactive")
 CREDITS = ("previous_step", "gamma", "uniform")
 FEATURE_SETS = ("bt", "knox", "dellacherie", "dt")

@@ -25,6 +25,7 @@ from hfrl_torch.models.linear import greedy_placement
 
 __all__ = [
     "DECISION_SCHEMES",
+    "FUSIONS",
     "REWARD_SCHEMES",
     "SCHEMES",
     "TARGET_SCHEMES",
@@ -61,6 +62,17 @@ SCHEMES: list[Scheme] = [
     Scheme("q_augmentation", ("target",), "Q + beta H in the update target (Knox & Stone)"),
 ]
 
+# the options of the ``fusion`` config group (``annealed`` is the linear rule with an annealed weight)
+FUSIONS: tuple[str, ...] = (
+    "none",
+    "human_only",
+    "linear",
+    "exponential",
+    "annealed",
+    "action_biasing",
+    "control_sharing",
+    "reward_shaping",
+)
 DECISION_SCHEMES: tuple[str, ...] = tuple(s.name for s in SCHEMES if "decision" in s.levels)
 REWARD_SCHEMES: tuple[str, ...] = tuple(s.name for s in SCHEMES if "reward" in s.levels)
 TARGET_SCHEMES: tuple[str, ...] = tuple(s.name for s in SCHEMES if "target" in s.levels)

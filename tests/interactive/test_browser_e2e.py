@@ -1,4 +1,5 @@
-"""End to end in a real headless Chromium: train.py trainer=interactive, a page, keys pressed, events learned.
+"""End to end in a real headless Chromium: train.py trainer=interactive (Tetris, and domain=keepaway), a page,
+keys pressed, events learned.
 
 Needs Debian's chromium (``/usr/bin/chromium``, installed by ``.ci/run``) and the ``playwright`` package
 (which drives it; no browser download). Skipped, saying why, where either is missing.
@@ -100,3 +101,58 @@ def test_person_presses_keys_and_the_learner_gets_them(tmp_path):
     assert [r["feedback/trainer_present"] for r in rows[1:]] == [0.0, 0.0]  # page closed: no teacher
     state = load_checkpoint(run_dir)["state"]
     assert torch.count_nonzero(torch.as_tensor(state["human_weights"])) > 0  # H^ learned from the person
+
+
+def test_person_teaches_the_keepers_in_the_browser(tmp_path):
+    run_dir = tmp_path / "live"
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            str(ROOT / "train.py"),
+            "domain=keepaway",
+            "trainer=interactive",
+            "trainer.port=0",
+            "trainer.actions_per_s=20",
+            "trainer.wait_for_page_s=60",
+            "agent.hours=0.02",
+            "agent.table_bits=12",
+            "logger.backend=none",
+            f"hydra.run.dir={run_dir}",
+        ],
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        url = _url(proc)
+        with playwright.sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+            page = browser.new_page()
+            page.goto(url)
+            page.wait_for_function(
+                "document.getElementById('score').textContent.endsWith(' s')", timeout=60_000
+            )
+            assert "keepers" in page.inner_text("#help") and page.inner_text("#speed-unit").startswith(
+                "decisions"
+            )
+            for key in ["/", "z"]:
+                page.keyboard.press(key)
+                page.wait_for_timeout(300)
+            assert page.inner_text("#given") == "2"
+            (tmp_path / "page.png").write_bytes(page.screenshot())
+            browser.close()  # the person leaves: the keepers go on from the environment alone
+        assert proc.wait(timeout=120) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+
+    events = load_feedback_log(run_dir / "feedback.jsonl")
+    assert [e.value for e in events] == [1.0, -1.0]
+    assert {e.source for e in events} == {"human:browser"}
+    assert all(0.0 <= e.time <= 80.0 and e.episode >= 0 for e in events)  # on the field's simulated clock
+    human = load_checkpoint(run_dir)["state"]["human"]
+    assert int(human["feedback"].sum()) == 2 and human["trainer"] == {"given": 2, "positive": 1}
+    assert torch.count_nonzero(human["human_weight"]) > 0  # H^ learned from the person
+    rows = [json.loads(x) for x in (run_dir / "metrics.jsonl").read_text().splitlines()]
+    assert rows[-1]["feedback/events_per_learner"] == 2.0

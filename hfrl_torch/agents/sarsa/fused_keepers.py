@@ -34,18 +34,9 @@ from torch import Tensor
 from hfrl_torch.agents.tamer.keeper_tamer import KeeperTamer
 from hfrl_torch.common.errors import CheckpointError
 from hfrl_torch.fusion.schedules import WeightSchedule
-from hfrl_torch.fusion.schemes import fuse_values, rescale_range
+from hfrl_torch.fusion.schemes import FUSIONS, fuse_values, rescale_range
 
-KEEPAWAY_SCHEMES = (
-    "none",
-    "human_only",
-    "linear",
-    "exponential",
-    "annealed",
-    "action_biasing",
-    "control_sharing",
-    "reward_shaping",
-)
+KEEPAWAY_SCHEMES = FUSIONS  # every fusion option works in keepaway
 _VALUE_RULE = {"annealed": "linear", "action_biasing": "linear"}
 SCALINGS = ("spread", "decision", "none")
 MIN_SPREAD = 1.0  # cycles: H^ keeps a say before Q has learned to separate the actions
