@@ -10,7 +10,6 @@ other) but it learns nothing more and is not counted.
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Callable
 from pathlib import Path
@@ -26,11 +25,11 @@ from hfrl_torch.agents.tamer.tamer import placement_deltas
 from hfrl_torch.common.checkpoint import LAST, save_checkpoint
 from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.common.logger import flatten_config, markdown_table
-from hfrl_torch.common.stats import summarize
 from hfrl_torch.common.validation import require_bool, require_choice, require_float, require_int
 from hfrl_torch.envs.tetris import TetrisEnv, TetrisRules
 from hfrl_torch.envs.tetris.features import feature_id, feature_names, feature_size
-from hfrl_torch.experiment.tetris_qlearning import FEATURES, greedy_evaluation
+from hfrl_torch.experiment.game_curves import greedy_evaluation, write_game_curves
+from hfrl_torch.experiment.tetris_qlearning import FEATURES
 from hfrl_torch.feedback.log import FeedbackLog
 from hfrl_torch.fusion.schedules import WeightSchedule
 from hfrl_torch.models.linear import greedy_placement
@@ -286,17 +285,8 @@ def train_pg(cfg: DictConfig, run_dir: Path) -> dict[str, float]:
         if log is not None:
             log.close()
 
-    lines = out["lines"].double()
-    history = []
-    for g in range(a.games):
-        s = summarize(lines[:, g], floor=0.0)
-        metrics = {
-            "eval/lines_per_game_mean": s["mean"],
-            "eval/lines_per_game_median": s["median"],
-            "eval/lines_per_game_ci95_low": s["ci95_low"],
-            "eval/lines_per_game_ci95_high": s["ci95_high"],
-            "train/pieces_per_game": float(out["pieces"][:, g].double().mean()),
-        }
+    def extra(g: int) -> dict[str, float]:
+        metrics = {"train/pieces_per_game": float(out["pieces"][:, g].double().mean())}
         if "given" in out:
             m = out["match_rate"][:, g]
             metrics.update(
@@ -308,10 +298,9 @@ def train_pg(cfg: DictConfig, run_dir: Path) -> dict[str, float]:
                     else math.nan,
                 }
             )
-        logger.scalars(metrics, g + 1)
-        history.append({"game": g + 1, **metrics})
-    with (run_dir / "metrics.jsonl").open("w") as f:
-        f.writelines(json.dumps(h) + "\n" for h in history)
+        return metrics
+
+    history = write_game_curves(out["lines"], logger, run_dir, extra)
 
     weights = out["weights"]
     final = dict(history[-1])

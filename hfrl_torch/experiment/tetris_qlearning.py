@@ -9,7 +9,6 @@ any other) but it learns nothing more and is not counted.
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable
 from pathlib import Path
 
@@ -22,10 +21,10 @@ from hfrl_torch.agents.qlearning import LinearQLearning
 from hfrl_torch.common.checkpoint import LAST, save_checkpoint
 from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.common.logger import flatten_config, markdown_table
-from hfrl_torch.common.stats import summarize
 from hfrl_torch.common.validation import require_choice, require_float, require_int
 from hfrl_torch.envs.tetris import TetrisEnv, TetrisRules
 from hfrl_torch.envs.tetris.features import feature_id, feature_names
+from hfrl_torch.experiment.game_curves import greedy_evaluation, write_game_curves
 
 FEATURES = ("bt", "knox", "dellacherie", "dt")
 
@@ -152,20 +151,6 @@ def environment_only(cfg: DictConfig) -> None:
             )
 
 
-def greedy_evaluation(cfg: DictConfig, weights: torch.Tensor, games: int) -> dict[str, float]:
-    """Each learner's greedy policy on the same ``games`` fresh games (``domain.max_pieces`` cap): the mean
-    lines per game of each learner, summarised over the learners (the policies without exploration)."""
-    from hfrl_torch.experiment.factories import make_rollout
-
-    gen = torch.Generator().manual_seed(int(cfg.seed) + 10_007)  # games that training did not play
-    seeds = torch.randint(0, 2**62, (games,), generator=gen, dtype=torch.int64)
-    rollout = make_rollout(cfg, features=cfg.agent.features)
-    learners = weights.shape[0]
-    lines, _, _ = rollout(weights.repeat_interleave(games, 0), seeds.repeat(learners))
-    s = summarize(lines.double().view(learners, games).mean(1), floor=0.0)
-    return {f"eval/greedy_lines_{k}": s[k] for k in ("mean", "median", "ci95_low", "ci95_high")}
-
-
 def train_qlearning(cfg: DictConfig, run_dir: Path) -> dict[str, float]:
     """``train.py agent=qlearning``: run the Q-learners, log one point per game, checkpoint learner 0.
 
@@ -201,24 +186,17 @@ def train_qlearning(cfg: DictConfig, run_dir: Path) -> dict[str, float]:
     finally:
         bar.close()
 
-    lines = out["lines"].double()
     eps = epsilon_schedule(a.epsilon, a.epsilon_decay, a.epsilon_min, torch.arange(a.games))
-    history = []
-    for g in range(a.games):
-        s = summarize(lines[:, g], floor=0.0)
-        metrics = {
-            "eval/lines_per_game_mean": s["mean"],
-            "eval/lines_per_game_median": s["median"],
-            "eval/lines_per_game_ci95_low": s["ci95_low"],
-            "eval/lines_per_game_ci95_high": s["ci95_high"],
+    history = write_game_curves(
+        out["lines"],
+        logger,
+        run_dir,
+        lambda g: {
             "train/td_error_mean": float(out["td_error"][:, g].mean()),
             "train/epsilon": float(eps[g]),
             "train/pieces_per_game": float(out["pieces"][:, g].double().mean()),
-        }
-        logger.scalars(metrics, g + 1)
-        history.append({"game": g + 1, **metrics})
-    with (run_dir / "metrics.jsonl").open("w") as f:
-        f.writelines(json.dumps(h) + "\n" for h in history)
+        },
+    )
 
     weights = out["weights"]
     final = dict(history[-1])

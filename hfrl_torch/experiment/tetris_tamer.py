@@ -10,7 +10,6 @@ not counted.
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable
 from pathlib import Path
 
@@ -22,9 +21,9 @@ from hfrl_torch import keys
 from hfrl_torch.agents.tamer import TamerAgent
 from hfrl_torch.common.checkpoint import LAST, save_checkpoint
 from hfrl_torch.common.logger import flatten_config, markdown_table
-from hfrl_torch.common.stats import summarize
 from hfrl_torch.envs.tetris import TetrisEnv, TetrisRules
 from hfrl_torch.envs.tetris.features import feature_id, feature_names
+from hfrl_torch.experiment.game_curves import write_game_curves
 from hfrl_torch.feedback.credit import CreditModel
 from hfrl_torch.feedback.log import FeedbackLog
 from hfrl_torch.trainers.base import Trainer
@@ -169,23 +168,16 @@ def train_tamer(cfg: DictConfig, run_dir: Path) -> dict[str, float]:
         bar.close()
         log.close()
 
-    lines, given = out["lines"].double(), out["given_per_game"].double()
-    history = []
-    for g in range(a.games):
-        s = summarize(lines[:, g], floor=0.0)
+    given = out["given_per_game"].double()
+
+    def feedback(g: int) -> dict[str, float]:
         fb = given[:, g, 0]
-        metrics = {
-            "eval/lines_per_game_mean": s["mean"],
-            "eval/lines_per_game_median": s["median"],
-            "eval/lines_per_game_ci95_low": s["ci95_low"],
-            "eval/lines_per_game_ci95_high": s["ci95_high"],
+        return {
             "feedback/given_mean": float(fb.mean()),
             "feedback/positive_share": float(given[:, g, 1].sum() / fb.sum()) if fb.sum() > 0 else 0.0,
         }
-        logger.scalars(metrics, g + 1)
-        history.append({"game": g + 1, **metrics})
-    with (run_dir / "metrics.jsonl").open("w") as f:
-        f.writelines(json.dumps(h) + "\n" for h in history)
+
+    history = write_game_curves(out["lines"], logger, run_dir, feedback)
     weights = out["weights"]
     save_checkpoint(
         run_dir / "checkpoints" / LAST,

@@ -48,27 +48,30 @@ def _url(proc: subprocess.Popen, timeout: float = 120) -> str:
     raise AssertionError("train.py did not print the page's URL")
 
 
+def _train(run_dir: Path, *overrides: str) -> subprocess.Popen:
+    """``train.py`` with the browser trainer on a free port, its stderr readable for the page's URL."""
+    args = [
+        sys.executable,
+        str(ROOT / "train.py"),
+        *overrides,
+        "logger.backend=none",
+        f"hydra.run.dir={run_dir}",
+    ]
+    return subprocess.Popen(args, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+
+
 def test_person_presses_keys_and_the_learner_gets_them(tmp_path):
     run_dir = tmp_path / "live"
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            str(ROOT / "train.py"),
-            "trainer=interactive",
-            "trainer.port=0",
-            "trainer.actions_per_s=4",
-            "agent.iterations=3",
-            "agent.population=10",
-            "agent.games_per_candidate=1",
-            "agent.eval_games=3",
-            "agent.watch_pieces=60",
-            "logger.backend=none",
-            f"hydra.run.dir={run_dir}",
-        ],
-        cwd=ROOT,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-        text=True,
+    proc = _train(
+        run_dir,
+        "trainer=interactive",
+        "trainer.port=0",
+        "trainer.actions_per_s=4",
+        "agent.iterations=3",
+        "agent.population=10",
+        "agent.games_per_candidate=1",
+        "agent.eval_games=3",
+        "agent.watch_pieces=60",
     )
     try:
         url = _url(proc)
@@ -105,24 +108,15 @@ def test_person_presses_keys_and_the_learner_gets_them(tmp_path):
 
 def test_person_teaches_the_keepers_in_the_browser(tmp_path):
     run_dir = tmp_path / "live"
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            str(ROOT / "train.py"),
-            "domain=keepaway",
-            "trainer=interactive",
-            "trainer.port=0",
-            "trainer.actions_per_s=20",
-            "trainer.wait_for_page_s=60",
-            "agent.hours=0.02",
-            "agent.table_bits=12",
-            "logger.backend=none",
-            f"hydra.run.dir={run_dir}",
-        ],
-        cwd=ROOT,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-        text=True,
+    proc = _train(
+        run_dir,
+        "domain=keepaway",
+        "trainer=interactive",
+        "trainer.port=0",
+        "trainer.actions_per_s=20",
+        "trainer.wait_for_page_s=60",
+        "agent.hours=0.02",
+        "agent.table_bits=12",
     )
     try:
         url = _url(proc)
