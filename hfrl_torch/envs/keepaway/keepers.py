@@ -53,6 +53,7 @@ def keeper_commands(
     pass_target: Tensor,
     grid: Tensor,
     physics: PhysicsParams,
+    kernels: str = "auto",
 ) -> tuple[Tensor, Tensor]:
     """Commands [B, n, 3] of all keepers, and the keeper with (or next to get) the ball [B].
 
@@ -60,6 +61,7 @@ def keeper_commands(
         ``holder_kickable``.
     :param pass_target: keeper the holder passes to, -1 for HoldBall [B].
     :param grid: GetOpen candidates [25, 2].
+    :param kernels: how GetOpen's search runs (``KeepawayConfig.kernels``).
     """
     batch, keepers = keeper_pos.shape[:2]
     horizon = ball_traj.shape[-2] - 1
@@ -72,7 +74,7 @@ def keeper_commands(
         rest_point,
     )
     ball_b = ball_pos.unsqueeze(-2).expand_as(keeper_pos)
-    open_target = get_open_target(keeper_pos, taker_pos, pass_from, grid)
+    open_target = get_open_target(keeper_pos, taker_pos, pass_from, grid, kernels)
     cmd = get_open(keeper_pos, keeper_vel, keeper_body, open_target, ball_b, physics)
     # only the fastest keeper runs GoToBall: evaluate it for that keeper alone
     f = fastest.unsqueeze(-1)

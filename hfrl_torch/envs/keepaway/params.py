@@ -11,6 +11,8 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
+import torch
+
 PRESETS = ("2005", "rcss19")
 
 
@@ -59,6 +61,24 @@ def physics_preset(name: str) -> PhysicsParams:
     raise ValueError(f"unknown keepaway preset {name!r}; expected one of {PRESETS}")
 
 
+KERNELS = ("auto", "numba", "torch")
+
+
+def resolve_kernels(kernels: str, device: torch.device, dtype: torch.dtype = torch.float32) -> str:
+    """``"numba"`` or ``"torch"``: how the searches and the collision passes run (``"auto"`` is
+    numba for float32 on CPU, torch otherwise; both give the same bits)."""
+    if kernels not in KERNELS:
+        raise ValueError(f"kernels={kernels!r} is invalid; allowed: {', '.join(KERNELS)}")
+    fits = device.type == "cpu" and dtype == torch.float32
+    if kernels == "auto":
+        return "numba" if fits else "torch"
+    if kernels == "numba" and not fits:
+        raise ValueError(
+            f"kernels='numba' runs float32 on the CPU only, not {dtype} on {device}; use kernels='torch'"
+        )
+    return kernels
+
+
 @dataclass(frozen=True)
 class KeepawayConfig:
     """Everything that defines a keepaway task, apart from the batch size and the seed.
@@ -76,6 +96,8 @@ class KeepawayConfig:
         5 = 500 ms as in the thesis's human-feedback experiments).
     :param intercept_horizon: look-ahead of GoToBall in cycles.
     :param collision_passes: maximal passes of the collision resolution.
+    :param kernels: how GoToBall's and GetOpen's searches run, not what they compute:
+        ``"auto"`` (numba on CPU, torch elsewhere), ``"numba"`` or ``"torch"``.
     """
 
     preset: str = "2005"
@@ -89,9 +111,12 @@ class KeepawayConfig:
     decision_period_cycles: int = 1
     intercept_horizon: int = 30
     collision_passes: int = 10
+    kernels: str = "auto"
 
     def __post_init__(self) -> None:
         physics_preset(self.preset)
+        if self.kernels not in KERNELS:
+            raise ValueError(f"kernels={self.kernels!r} is invalid; allowed: {', '.join(KERNELS)}")
         if self.keepers < 2:
             raise ValueError("keepaway needs at least 2 keepers")
         if self.takers < 1:

@@ -14,7 +14,7 @@ import torch
 from torch import Tensor
 
 from hfrl_torch.envs.keepaway.keepers import keeper_commands
-from hfrl_torch.envs.keepaway.params import KeepawayConfig
+from hfrl_torch.envs.keepaway.params import KeepawayConfig, resolve_kernels
 from hfrl_torch.envs.keepaway.physics import (
     DASH_KIND,
     KICK_KIND,
@@ -157,6 +157,7 @@ class KeepawaySimulator:
         self.batch_size = batch_size
         self.device = torch.device(device)
         self.dtype = dtype
+        self.kernels = resolve_kernels(self.config.kernels, self.device, dtype)
         self.generator = torch.Generator(device=self.device)
         self.generator.manual_seed(seed)
         n, m = self.config.keepers, self.config.takers
@@ -318,7 +319,9 @@ class KeepawaySimulator:
         ppos, pvel, pbody = s.pos[:, 1:], s.vel[:, 1:], s.body[:, 1:]
         traj = predict_ball(ball, ball_vel, p.ball_decay, cfg.intercept_horizon)
         rest = ball_rest_point(ball, ball_vel, p.ball_decay)
-        cycles, points = intercept_estimate(ppos, pvel, pbody, ball, ball_vel, cfg.intercept_horizon, p)
+        cycles, points = intercept_estimate(
+            ppos, pvel, pbody, ball, ball_vel, cfg.intercept_horizon, p, self.kernels
+        )
         kcmd, with_ball = keeper_commands(
             ppos[:, :n],
             pvel[:, :n],
@@ -336,6 +339,7 @@ class KeepawaySimulator:
             pass_target,
             self.grid,
             p,
+            self.kernels,
         )
         tcmd = taker_commands(
             ppos[:, :n],
@@ -383,7 +387,7 @@ class KeepawaySimulator:
             p.polar_noise,
             move_noise,
         )
-        pos, vel, _ = resolve_collisions(pos, vel, self.radius, cfg.collision_passes)
+        pos, vel, _ = resolve_collisions(pos, vel, self.radius, cfg.collision_passes, kernels=self.kernels)
 
         # referee
         kd = p.kickable_distance

@@ -13,7 +13,7 @@ import math
 import torch
 from torch import Tensor
 
-from hfrl_torch.envs.keepaway.params import PhysicsParams
+from hfrl_torch.envs.keepaway.params import PhysicsParams, resolve_kernels
 from hfrl_torch.envs.keepaway.physics import (
     DASH_KIND,
     KICK_KIND,
@@ -39,6 +39,8 @@ HOLD_SPOT_TOLERANCE = 0.3
 PASS_END_SPEED = 1.2
 WHEN_TO_KICK = 0.85  # PlayerWhenToKick
 GOAL_X = 52.5  # the pitch's goal line, the point HoldBall turns to when the ball lies well
+CONE_WIDTH = 0.3  # GetOpen's pass cone: off-line distance per metre along the pass
+BLOCKED_PENALTY = 1e9  # congestion added to a GetOpen point whose pass cone holds a taker
 
 
 def command(kind: int | Tensor, power: Tensor | float, angle: Tensor | float, like: Tensor) -> Tensor:
@@ -195,6 +197,7 @@ def intercept_estimate(
     ball_vel: Tensor,
     horizon: int,
     physics: PhysicsParams,
+    kernels: str = "auto",
 ) -> tuple[Tensor, Tensor]:
     """Cycles until each player can have the ball within kickable distance, and where.
 
@@ -203,70 +206,147 @@ def intercept_estimate(
     dashes covering the distance less the kickable distance; the first i where that fits is the
     interception. If no cycle of the horizon fits, the player runs to the ball's rest point.
     The ball moves on a straight line, so everything reduces to scalars per (cycle, player),
-    laid out [H + 1, B, P] so that the reductions over cycles are elementwise; on CPU the
-    fields are processed in blocks so that these temporaries stay in the cache.
+    laid out [H + 1, B, P] so that the reductions over cycles are elementwise (on CPU in blocks
+    of fields that stay in the cache), or searched cycle by cycle by a numba kernel.
 
     :param pos: player positions [B, P, 2]; ``vel`` alike, ``body`` [B, P].
     :param ball_pos: ball position [B, 2]; ``ball_vel`` alike.
+    :param kernels: ``"numba"``, ``"torch"`` or ``"auto"`` (see :func:`resolve_kernels`).
     :returns: cycles [B, P] (long) and interception points [B, P, 2].
     """
-    kickable = physics.kickable_distance
     decay = physics.player_decay
     accel = min(physics.max_power * physics.dash_power_rate, physics.player_accel_max)
     cruise = min(accel / (1.0 - decay), physics.player_speed_max)
     cycles_1d = torch.arange(horizon + 1, device=pos.device, dtype=pos.dtype)
-    travel_1d = (1.0 - torch.pow(torch.full_like(cycles_1d, physics.ball_decay), cycles_1d)) / (
+    travel = (1.0 - torch.pow(torch.full_like(cycles_1d, physics.ball_decay), cycles_1d)) / (
         1.0 - physics.ball_decay
     )
+    series = (1.0 - torch.pow(torch.full_like(cycles_1d, decay), cycles_1d)) / (1.0 - decay)
+    cruise_part = cycles_1d * cruise
+    table = _reach_table(horizon, physics, pos.device, pos.dtype)  # [4, H+1]
+    body = body.contiguous()
+    hx, hy = torch.cos(body), torch.sin(body)
+    # t turns fit when the heading error is within the first t turns' reach (+7 degrees); the
+    # turn counts are nested and fewer turns leave more dashing, so the reachable distance is
+    # that of the fewest turns whose limit covers the heading error
+    speed = norm(vel)
+    cos_limits = []
+    capacity = torch.zeros_like(speed)
+    for t in range(3):
+        cos_limits.append(torch.cos((capacity + WHEN_TO_TURN).clamp(max=math.pi)))
+        capacity = capacity + (math.pi / (1.0 + physics.inertia_moment * speed * decay**t)).clamp(max=math.pi)
+    if resolve_kernels(kernels, pos.device, pos.dtype) == "numba":
+        from hfrl_torch.envs.keepaway.kernels_numba import intercept_search
+
+        cycles = torch.empty(pos.shape[:2], dtype=torch.long)
+        points = torch.empty_like(pos)
+        consts = [physics.kickable_distance, 1e-12, 0.0, 1.0, 2.0, accel, physics.player_speed_max, cruise]
+        intercept_search(
+            *(t.contiguous().numpy() for t in (pos, vel, hx, hy, ball_pos, ball_vel)),
+            torch.stack(cos_limits).numpy(),
+            *(t.numpy() for t in (travel, travel * travel, series, cruise_part, table)),
+            torch.tensor([*consts, 1.0 - physics.ball_decay]).numpy(),
+            cycles.numpy(),
+            points.numpy(),
+        )
+        return cycles, points
+    return _intercept_torch(
+        pos, vel, hx, hy, ball_pos, ball_vel, cos_limits, travel, series, cruise_part, table,
+        accel, cruise, horizon, physics,
+    )  # fmt: skip
+
+
+def _intercept_torch(
+    pos: Tensor,
+    vel: Tensor,
+    hx: Tensor,
+    hy: Tensor,
+    ball_pos: Tensor,
+    ball_vel: Tensor,
+    cos_limits: list[Tensor],
+    travel_1d: Tensor,
+    series_1d: Tensor,
+    cruise_1d: Tensor,
+    table_2d: Tensor,
+    accel: float,
+    cruise: float,
+    horizon: int,
+    physics: PhysicsParams,
+) -> tuple[Tensor, Tensor]:
+    """:func:`intercept_estimate` with tensor ops, the twin of ``kernels_numba.intercept_search``:
+    per (field, player) coefficients of the quadratics in the ball's travel, then all cycles
+    at once."""
     travel = travel_1d[:, None, None]
     travel_sq = travel * travel
-    hx, hy = torch.cos(body), torch.sin(body)
     vx, vy = ball_vel[:, None, 0], ball_vel[:, None, 1]
     v_sq = vx * vx + vy * vy
     dx = ball_pos[:, None, 0] - pos[..., 0]
     dy = ball_pos[:, None, 1] - pos[..., 1]
     ex, ey = dx - vel[..., 0], dy - vel[..., 1]
-    # per (field, player) coefficients of the quadratics in travel (same arithmetic as a
-    # direct [H+1, B, P] evaluation)
     need_lin = 2.0 * (dx * vx + dy * vy)
     need_const = dx * dx + dy * dy
     err_lin = 2.0 * (ex * vx + ey * vy)
     err_const = ex * ex + ey * ey + 1e-12
     head_lin = vx * hx + vy * hy
     head_const = ex * hx + ey * hy
-    speed = torch.hypot(vel[..., 0], vel[..., 1])
-    table = _reach_table(horizon, physics, pos.device, pos.dtype)[:, :, None, None]  # [4, H+1, 1, 1]
     forward = (vel[..., 0] * hx + vel[..., 1] * hy).clamp_min(0.0)
     first = (forward + accel).clamp(max=physics.player_speed_max)
     first_gap = first - cruise
-    series = ((1.0 - torch.pow(torch.full_like(cycles_1d, decay), cycles_1d)) / (1.0 - decay))[:, None, None]
-    cruise_part = (cycles_1d * cruise)[:, None, None]
-    # t turns fit when the heading error is within the first t turns' reach (+7 degrees); the
-    # turn counts are nested and fewer turns leave more dashing, so the reachable distance is
-    # that of the fewest turns whose limit covers the heading error
-    cos_limits = []
-    capacity = torch.zeros_like(speed)
-    for t in range(3):
-        cos_limits.append(torch.cos((capacity + WHEN_TO_TURN).clamp(max=math.pi)))
-        capacity = capacity + (math.pi / (1.0 + physics.inertia_moment * speed * decay**t)).clamp(max=math.pi)
-    weights = _weights(horizon, pos.device)
-    batch, players = pos.shape[:2]
-    block = batch if pos.device.type != "cpu" else INTERCEPT_BLOCK
-    score = torch.empty(batch, players, dtype=torch.uint8, device=pos.device)
+    score = _first_reachable_torch(
+        need_lin, need_const, err_lin, err_const, head_lin, head_const, first_gap, cos_limits,
+        v_sq, travel, travel_sq, series_1d[:, None, None], cruise_1d[:, None, None],
+        table_2d[:, :, None, None], physics.kickable_distance, horizon,
+    )  # fmt: skip
+    found = score > 0
+    first_cycle = (horizon + 1 - score.long()).clamp(max=horizon)
+    along = travel_1d[first_cycle]
+    point = ball_pos.unsqueeze(1) + along.unsqueeze(-1) * ball_vel.unsqueeze(1)
+    rest = (ball_pos + ball_vel / (1.0 - physics.ball_decay)).unsqueeze(1).expand_as(point)
+    fallback_cycles = horizon + 1 + torch.ceil(norm(rest - pos) / cruise).long()
+    cycles = torch.where(found, first_cycle, fallback_cycles)
+    return cycles, torch.where(found.unsqueeze(-1), point, rest)
+
+
+def _first_reachable_torch(
+    need_lin: Tensor,
+    need_const: Tensor,
+    err_lin: Tensor,
+    err_const: Tensor,
+    head_lin: Tensor,
+    head_const: Tensor,
+    first_gap: Tensor,
+    cos_limits: list[Tensor],
+    v_sq: Tensor,
+    travel: Tensor,
+    travel_sq: Tensor,
+    series: Tensor,
+    cruise_part: Tensor,
+    table: Tensor,
+    kickable: float,
+    horizon: int,
+) -> Tensor:
+    """H + 1 - the first reachable cycle [B, P] as uint8 (0 where none is): the tensor twin of
+    ``kernels_numba.first_reachable_cycles``, evaluated for all cycles at once."""
+    like = need_lin
+    weights = _weights(horizon, like.device)
+    batch, players = like.shape
+    block = batch if like.device.type != "cpu" else INTERCEPT_BLOCK
+    score = torch.empty(batch, players, dtype=torch.uint8, device=like.device)
     for lo in range(0, batch, block):
         hi = min(lo + block, batch)
         shape = (horizon + 1, hi - lo, players)
-        need = _scratch("need", shape, pos)
-        err = _scratch("err", shape, pos)
-        tmp = _scratch("tmp", shape, pos)
-        reach = _scratch("reach", shape, pos)
-        ready = _scratch("ready", shape, pos, torch.bool)
-        can = _scratch("can", shape, pos, torch.uint8)
-        vsq = v_sq[lo:hi]
+        need = _scratch("need", shape, like)
+        err = _scratch("err", shape, like)
+        tmp = _scratch("tmp", shape, like)
+        reach = _scratch("reach", shape, like)
+        ready = _scratch("ready", shape, like, torch.bool)
+        can = _scratch("can", shape, like, torch.uint8)
+        moved = _scratch("moved", (horizon + 1, hi - lo, 1), like)
+        torch.mul(travel_sq, v_sq[lo:hi], out=moved)  # not addcmul: no fused multiply-add
         torch.mul(travel, need_lin[lo:hi], out=need)
-        need.add_(need_const[lo:hi]).addcmul_(travel_sq, vsq).clamp_min_(0.0).sqrt_().sub_(kickable)
+        need.add_(need_const[lo:hi]).add_(moved).clamp_min_(0.0).sqrt_().sub_(kickable)
         torch.mul(travel, err_lin[lo:hi], out=err)
-        err.add_(err_const[lo:hi]).addcmul_(travel_sq, vsq).clamp_min_(1e-12).rsqrt_()
+        err.add_(err_const[lo:hi]).add_(moved).clamp_min_(1e-12).rsqrt_()
         torch.mul(travel, head_lin[lo:hi], out=tmp)
         err.mul_(tmp.add_(head_const[lo:hi]))
         torch.mul(series, first_gap[lo:hi], out=reach)
@@ -281,14 +361,7 @@ def intercept_estimate(
         torch.le(need, tmp, out=ready)
         torch.mul(ready, weights, out=can)
         torch.amax(can, 0, out=score[lo:hi])  # the first reachable cycle wins
-    found = score > 0
-    first_cycle = (horizon + 1 - score.long()).clamp(max=horizon)
-    along = travel_1d[first_cycle]
-    point = ball_pos.unsqueeze(1) + along.unsqueeze(-1) * ball_vel.unsqueeze(1)
-    rest = (ball_pos + ball_vel / (1.0 - physics.ball_decay)).unsqueeze(1).expand_as(point)
-    fallback_cycles = horizon + 1 + torch.ceil(norm(rest - pos) / cruise).long()
-    cycles = torch.where(found, first_cycle, fallback_cycles)
-    return cycles, torch.where(found.unsqueeze(-1), point, rest)
+    return score
 
 
 @functools.lru_cache(maxsize=16)
@@ -482,7 +555,7 @@ def get_open_grid(length: float, width: float, device: torch.device, dtype: torc
     return torch.stack((gx.reshape(-1), gy.reshape(-1)), dim=-1)
 
 
-def in_pass_cone(origin: Tensor, end: Tensor, others: Tensor, width: float = 0.3) -> Tensor:
+def in_pass_cone(origin: Tensor, end: Tensor, others: Tensor, width: float = CONE_WIDTH) -> Tensor:
     """Whether each of ``others`` [..., K, 2] lies in the pass cone origin -> end [..., 2].
 
     With q the projection on the line: |other - q| < width |q - origin|, q between the ends, and
@@ -506,25 +579,45 @@ def _cone_test(sx: Tensor, sy: Tensor, rx: Tensor, ry: Tensor, width: float) -> 
     return inside & (along >= 0.0) & (along <= seg_sq) & (rel_sq < seg_sq)
 
 
-def get_open_target(keeper_pos: Tensor, taker_pos: Tensor, pass_from: Tensor, grid: Tensor) -> Tensor:
+def get_open_target(
+    keeper_pos: Tensor, taker_pos: Tensor, pass_from: Tensor, grid: Tensor, kernels: str = "auto"
+) -> Tensor:
     """GetOpen point [B, n, 2] of every keeper: the least congested grid point whose pass cone
     from ``pass_from`` holds no taker (the region centre if none).
 
-    Congestion of a point for keeper k: sum over all other players of 1 / distance. On CPU the
-    fields are processed in blocks so that the [25, B, P] temporaries stay in the cache.
+    Congestion of a point for keeper k: the sum over all players (in index order) of
+    1 / distance, less keeper k's own term. On CPU the fields are processed in blocks so that the
+    [25, B, P] temporaries stay in the cache, or by a numba kernel (``kernels``, see
+    :func:`resolve_kernels`).
     """
     batch, keepers = keeper_pos.shape[:2]
     candidates = grid.shape[0]
-    block = batch if keeper_pos.device.type != "cpu" else INTERCEPT_BLOCK
     players = torch.cat((keeper_pos, taker_pos), dim=-2)  # [B, P, 2]
+    if resolve_kernels(kernels, keeper_pos.device, keeper_pos.dtype) == "numba":
+        from hfrl_torch.envs.keepaway.kernels_numba import least_congested_points
+
+        choice = torch.empty(batch, keepers, dtype=torch.long)
+        none_open = torch.empty(batch, dtype=torch.bool)
+        consts = torch.tensor([1.0 + CONE_WIDTH * CONE_WIDTH, 1e-12, BLOCKED_PENALTY, 0.0, 1.0])
+        least_congested_points(
+            grid.contiguous().numpy(),
+            players.numpy(),
+            pass_from.contiguous().numpy(),
+            keepers,
+            consts.to(keeper_pos.dtype).numpy(),
+            choice.numpy(),
+            none_open.numpy(),
+        )
+        return torch.where(none_open[:, None, None], torch.zeros_like(grid[:1]), grid[choice])
+    block = batch if keeper_pos.device.type != "cpu" else INTERCEPT_BLOCK
     gx, gy = grid[:, 0, None, None], grid[:, 1, None, None]  # [25, 1, 1]
     px, py = players[..., 0], players[..., 1]  # [B, P]
     sx = gx[..., 0] - pass_from[:, 0]  # [25, B]
     sy = gy[..., 0] - pass_from[:, 1]
     rx = taker_pos[..., 0] - pass_from[:, 0, None]  # [B, m]
     ry = taker_pos[..., 1] - pass_from[:, 1, None]
-    blocked = _cone_test(sx.unsqueeze(-1), sy.unsqueeze(-1), rx, ry, 0.3).any(-1)  # [25, B]
-    penalty = blocked.unsqueeze(-1).to(keeper_pos.dtype) * 1e9
+    blocked = _cone_test(sx.unsqueeze(-1), sy.unsqueeze(-1), rx, ry, CONE_WIDTH).any(-1)  # [25, B]
+    penalty = blocked.unsqueeze(-1).to(keeper_pos.dtype) * BLOCKED_PENALTY
     weights = torch.arange(candidates, 0, -1, device=grid.device, dtype=keeper_pos.dtype)[:, None, None]
     index = torch.empty(batch, keepers, device=grid.device, dtype=keeper_pos.dtype)
     for lo in range(0, batch, block):
@@ -536,8 +629,12 @@ def get_open_target(keeper_pos: Tensor, taker_pos: Tensor, pass_from: Tensor, gr
         inv.mul_(inv)
         torch.sub(gy, py[lo:hi], out=tmp)
         inv.add_(tmp.mul_(tmp)).add_(1e-12).rsqrt_()
+        total = _scratch("inv_total", (candidates, hi - lo, 1), keeper_pos)
+        total.copy_(inv[..., :1])
+        for q in range(1, inv.shape[-1]):  # left to right, as the kernel (torch.sum's order varies)
+            total.add_(inv[..., q : q + 1])
         cong = _scratch("cong", (candidates, hi - lo, keepers), keeper_pos)
-        torch.sub(inv.sum(-1, keepdim=True), inv[..., :keepers], out=cong)
+        torch.sub(total, inv[..., :keepers], out=cong)
         cong.add_(penalty[:, lo:hi])
         best = cong.amin(0)
         torch.mul(cong == best, weights, out=cong)

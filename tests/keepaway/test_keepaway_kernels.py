@@ -1,0 +1,150 @@
+"""The numba kernels (CPU fast path) give the torch path's bits: on random scenes, on scenes built
+to reach every branch, and over whole simulated episodes."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from hfrl_torch.envs.keepaway import KeepawayConfig, KeepawaySimulator, hand_coded_actions
+from hfrl_torch.envs.keepaway.params import physics_preset, resolve_kernels
+from hfrl_torch.envs.keepaway.physics import resolve_collisions
+from hfrl_torch.envs.keepaway.skills import get_open_grid, get_open_target, intercept_estimate
+
+FIELDS = 256
+
+
+def random_scene(seed: int, players: int, spread: float) -> dict[str, torch.Tensor]:
+    """Players, ball and velocities of FIELDS fields drawn from ``seed``; ``spread`` is the half
+    size of the square they stand in (small values crowd them together)."""
+    g = torch.Generator().manual_seed(seed)
+
+    def uniform(*shape: int, scale: float) -> torch.Tensor:
+        return (2 * torch.rand(shape, generator=g) - 1) * scale
+
+    return {
+        "pos": uniform(FIELDS, players, 2, scale=spread),
+        "vel": uniform(FIELDS, players, 2, scale=0.6),
+        "body": uniform(FIELDS, players, scale=math.pi),
+        "ball_pos": uniform(FIELDS, 2, scale=spread),
+        "ball_vel": uniform(FIELDS, 2, scale=2.5),
+    }
+
+
+def both(fn, *args, **kwargs) -> tuple:
+    """``fn`` with the numba and with the torch kernels."""
+    return fn(*args, **kwargs, kernels="numba"), fn(*args, **kwargs, kernels="torch")
+
+
+def assert_same_bits(a: tuple | torch.Tensor, b: tuple | torch.Tensor) -> None:
+    for x, y in zip(a, b, strict=True) if isinstance(a, tuple) else [(a, b)]:
+        assert x.dtype == y.dtype and x.shape == y.shape
+        assert torch.equal(x, y), f"{int((x != y).sum())} of {x.numel()} values differ"
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    preset=st.sampled_from(["2005", "rcss19"]),
+    spread=st.sampled_from([3.0, 12.0]),
+)
+def test_interception_search_matches_torch(seed: int, preset: str, spread: float) -> None:
+    s = random_scene(seed, 5, spread)
+    physics = physics_preset(preset)
+    numba_out, torch_out = both(
+        intercept_estimate, s["pos"], s["vel"], s["body"], s["ball_pos"], s["ball_vel"], 30, physics
+    )
+    assert_same_bits(numba_out, torch_out)
+
+
+def test_interception_reaches_found_and_fallback_branches() -> None:
+    s = random_scene(7, 5, 12.0)
+    cycles, _ = intercept_estimate(
+        s["pos"], s["vel"], s["body"], s["ball_pos"], s["ball_vel"], 30, physics_preset("2005")
+    )
+    assert (cycles <= 30).any() and (cycles > 30).any()
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), keepers=st.integers(2, 5), takers=st.integers(1, 4))
+def test_get_open_choice_matches_torch(seed: int, keepers: int, takers: int) -> None:
+    s = random_scene(seed, keepers + takers, 10.0)
+    grid = get_open_grid(20.0, 20.0, torch.device("cpu"), torch.float32)
+    keeper_pos, taker_pos = s["pos"][:, :keepers], s["pos"][:, keepers:]
+    assert_same_bits(*both(get_open_target, keeper_pos, taker_pos, s["ball_pos"], grid))
+
+
+def test_get_open_with_every_cone_blocked_and_ties() -> None:
+    grid = get_open_grid(20.0, 20.0, torch.device("cpu"), torch.float32)
+    pass_from = torch.tensor([[-50.0, 0.0], [0.0, 0.0]])
+    # field 0: a taker between a far passer and the whole grid blocks every cone; field 1: a
+    # symmetric scene (ties go to the first grid point)
+    takers = torch.tensor([[[-45.0, 0.0], [-40.0, 3.0]], [[0.0, 9.0], [0.0, -9.0]]])
+    keepers = torch.tensor([[[1.0, 1.0], [2.0, -1.0]], [[9.0, 0.0], [-9.0, 0.0]]])
+    numba_out, torch_out = both(get_open_target, keepers, takers, pass_from, grid)
+    assert_same_bits(numba_out, torch_out)
+    assert numba_out[0].abs().sum() == 0  # no open point: the region's centre
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), objects=st.integers(2, 10), crowd=st.sampled_from([0.3, 1.0, 3.0]))
+def test_collision_passes_match_torch(seed: int, objects: int, crowd: float) -> None:
+    s = random_scene(seed, objects, crowd)
+    radius = torch.tensor([0.085] + [0.3] * (objects - 1))
+    numba_out, torch_out = both(resolve_collisions, s["pos"], s["vel"], radius, 10)
+    assert_same_bits(numba_out, torch_out)
+    if crowd < 1.0:
+        assert numba_out[2].any()
+
+
+def test_coincident_objects_separate_alike() -> None:
+    pos = torch.zeros(3, 4, 2)
+    pos[1, 2] = pos[1, 1] = torch.tensor([1.0, -1.0])
+    radius = torch.tensor([0.085, 0.3, 0.3, 0.3])
+    numba_out, torch_out = both(resolve_collisions, pos, torch.ones_like(pos), radius, 10)
+    assert_same_bits(numba_out, torch_out)
+    assert numba_out[2].all()
+
+
+@pytest.mark.parametrize(
+    ("preset", "keepers", "takers", "noise"),
+    [("2005", 3, 2, True), ("rcss19", 4, 3, True), ("2005", 5, 4, False)],
+)
+def test_simulated_episodes_identical(
+    one_thread: None, preset: str, keepers: int, takers: int, noise: bool
+) -> None:
+    sims = [
+        KeepawaySimulator(
+            48,
+            KeepawayConfig(
+                preset=preset, keepers=keepers, takers=takers, movement_noise=noise, kernels=kernels
+            ),
+            seed=3,
+        )
+        for kernels in ("numba", "torch")
+    ]
+    ended = 0
+    for _ in range(150):
+        for sim in sims:
+            obs, _ = sim.observe(sim.decision().holder)
+            outcome = sim.step(hand_coded_actions(obs, keepers, takers), auto_reset=True)
+        ended += int(outcome.ended.sum())
+        for name, value in sims[0].state.tensors().items():
+            assert torch.equal(value, getattr(sims[1].state, name)), name
+    assert ended > 0
+
+
+def test_kernel_choice() -> None:
+    cpu, cuda = torch.device("cpu"), torch.device("cuda")
+    assert resolve_kernels("auto", cpu) == "numba"
+    assert resolve_kernels("auto", cpu, torch.float64) == "torch"
+    assert resolve_kernels("auto", cuda) == "torch"
+    assert resolve_kernels("torch", cpu) == "torch"
+    with pytest.raises(ValueError, match="kernels='numba' runs float32 on the CPU only"):
+        resolve_kernels("numba", cuda)
+    with pytest.raises(ValueError, match=r"kernels='fast' is invalid; allowed: auto, numba, torch"):
+        KeepawayConfig(kernels="fast")
