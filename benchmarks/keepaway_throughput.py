@@ -2,7 +2,9 @@
 
 Runs the batched simulator with the Hand-coded keepers deciding inside each cycle (the
 benchmark-policy path) and, separately, the TorchRL env (SMDP steps, fields waiting for the
-slowest one), for B = 1, 64, 1024, 8192. Prints one JSON object.
+slowest one), for B = 1, 64, 1024, 8192. On CPU the simulator runs twice, side by side: with the
+numba kernels (the default there) and with the pure-torch path as the reference. Prints one
+JSON object. One torch thread; the numba kernels are serial loops.
 
     python benchmarks/keepaway_throughput.py [--cycles 40] [--repeats 5] [--batches 1 64 1024 8192]
 """
@@ -21,29 +23,36 @@ from hfrl_torch import keys  # noqa: E402
 from hfrl_torch.envs.keepaway import KeepawayConfig, KeepawayEnv, KeepawaySimulator, hand_coded_actions  # noqa: E402
 
 
-def simulator_rate(batch: int, cycles: int, device: str, preset: str, repeats: int = 1) -> float:
-    """Field-cycles per second of the simulator with the hand-coded policy inline (the best of
-    ``repeats`` timed runs of ``cycles`` cycles, which filters out a noisy machine's slow spells)."""
-    config = KeepawayConfig(preset=preset)
-    sim = KeepawaySimulator(batch, config, device=device, seed=0)
+def simulator_rates(
+    batch: int, cycles: int, device: str, preset: str, kernels: list[str], repeats: int = 1
+) -> dict[str, float]:
+    """Field-cycles per second of the simulator with the hand-coded policy inline, for each
+    kernel choice. The choices' timed runs of ``cycles`` cycles alternate (an A/B run in one
+    process, so the VM's drifting speed hits them alike) and the best of ``repeats`` counts."""
+    sims = {
+        k: KeepawaySimulator(batch, KeepawayConfig(preset=preset, kernels=k), device=device, seed=0)
+        for k in kernels
+    }
 
-    def one_cycle() -> None:
+    def one_cycle(sim: KeepawaySimulator) -> None:
         obs, _ = sim.observe(sim.decision().holder)
-        sim.step(hand_coded_actions(obs, config.keepers, config.takers), auto_reset=True)
+        sim.step(hand_coded_actions(obs, sim.config.keepers, sim.config.takers), auto_reset=True)
 
-    for _ in range(3):
-        one_cycle()
-    best = float("inf")
+    for sim in sims.values():
+        for _ in range(3):  # includes numba's compilation (or loading it from the cache)
+            one_cycle(sim)
+    best = dict.fromkeys(sims, float("inf"))
     for _ in range(repeats):
-        if device == "cuda":
-            torch.cuda.synchronize()
-        start = time.perf_counter()
-        for _ in range(cycles):
-            one_cycle()
-        if device == "cuda":
-            torch.cuda.synchronize()
-        best = min(best, time.perf_counter() - start)
-    return batch * cycles / best
+        for name, sim in sims.items():
+            if device == "cuda":
+                torch.cuda.synchronize()
+            start = time.perf_counter()
+            for _ in range(cycles):
+                one_cycle(sim)
+            if device == "cuda":
+                torch.cuda.synchronize()
+            best[name] = min(best[name], time.perf_counter() - start)
+    return {name: batch * cycles / seconds for name, seconds in best.items()}
 
 
 def env_rate(batch: int, steps: int, device: str, preset: str) -> dict[str, float]:
@@ -70,8 +79,9 @@ def main() -> None:
     parser.add_argument("--batches", type=int, nargs="+", default=[1, 64, 1024, 8192])
     parser.add_argument("--preset", default="2005")
     parser.add_argument("--repeats", type=int, default=1, help="timed simulator runs; the best is reported")
+    parser.add_argument("--devices", nargs="+", help="default: cpu, and cuda when present")
     args = parser.parse_args()
-    devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+    devices = args.devices or ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
     result: dict[str, object] = {
         "threads": torch.get_num_threads(),
         "preset": args.preset,
@@ -79,10 +89,12 @@ def main() -> None:
         "env": {},
     }
     for device in devices:
-        result["simulator"][device] = {
-            str(b): round(simulator_rate(b, args.cycles, device, args.preset, args.repeats))
+        kernels = ["numba", "torch"] if device == "cpu" else ["torch"]
+        rates = {
+            b: simulator_rates(b, args.cycles, device, args.preset, kernels, args.repeats)
             for b in args.batches
         }
+        result["simulator"][device] = {k: {str(b): round(rates[b][k]) for b in args.batches} for k in kernels}
         result["env"][device] = {
             str(b): {k: round(v) for k, v in env_rate(b, args.env_steps, device, args.preset).items()}
             for b in args.batches

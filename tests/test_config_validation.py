@@ -114,6 +114,7 @@ def test_keepaway_is_learned_by_sarsa_only():
         ("domain.keepers=1", "domain.keepers=1 is invalid: must be an integer in 2..11"),
         ("episodes=0", "episodes=0 is invalid: must be an integer >= 1"),
         ("domain.decision_period_cycles=0", "domain.decision_period_cycles=0 is invalid"),
+        ("domain.kernels=fast", "domain.kernels='fast' is invalid; allowed: auto, numba, torch"),
     ],
 )
 def test_keepaway_evaluate_bad_values(override, message):

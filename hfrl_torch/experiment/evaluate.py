@@ -175,6 +175,7 @@ KEEPAWAY_POLICIES = ("hand", "random", "hold")  # besides a keepaway run directo
 def keepaway_config(cfg: DictConfig):
     """The simulator's ``KeepawayConfig`` from ``domain`` (checked, one-line errors)."""
     from hfrl_torch.envs.keepaway import PRESETS, KeepawayConfig
+    from hfrl_torch.envs.keepaway.params import KERNELS
 
     cfg.domain.preset = str(cfg.domain.preset)  # the command line reads preset=2005 as a number
     turnover = OmegaConf.select(cfg, "domain.turnover_cycles")
@@ -192,6 +193,7 @@ def keepaway_config(cfg: DictConfig):
         decision_period_cycles=decision_period(cfg),
         intercept_horizon=require_int(cfg, "domain.intercept_horizon", 1, 200),
         collision_passes=require_int(cfg, "domain.collision_passes", 1, 100),
+        kernels=require_choice(cfg, "domain.kernels", KERNELS) if "kernels" in cfg.domain else "auto",
     )
 
 
