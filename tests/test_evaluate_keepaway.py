@@ -312,5 +312,16 @@ def test_task_values_on_the_command_line_are_refused_for_a_checkpoint(plain, mon
         _evaluate(plain, "episodes=4", "domain.batch=4", "domain.keepers=4")
     assert str(info.value) == (
         "domain.keepers=4 does not apply to a checkpoint, which is played on the task it learned "
-        "(set only domain.batch, episodes and seed)"
+        "(set only domain.batch, domain.kernels, episodes and seed)"
     )
+
+
+def test_a_checkpoint_plays_alike_with_either_kernels(plain, monkeypatch):
+    """domain.kernels says how the simulator runs, not what task: allowed for a checkpoint, same bits."""
+    monkeypatch.setattr(
+        "hfrl_torch.experiment.evaluate._task_overrides", lambda: ["domain.batch=4", "domain.kernels=torch"]
+    )
+    runs = [
+        _evaluate(plain, "episodes=4", "domain.batch=4", f"domain.kernels={k}") for k in ("torch", "numba")
+    ]
+    assert runs[0]["per_team_mean_s"] == runs[1]["per_team_mean_s"]

@@ -235,6 +235,7 @@ def evaluate_keepaway(cfg: DictConfig, progress: bool = True) -> dict[str, objec
         config = keepaway_config(cfg)
     else:
         ckpt, config = _keepaway_checkpoint(policy)
+        config = config.replace(kernels=keepaway_config(cfg).kernels)
     set_threads(cfg)
     options = asdict(config)
     options.pop("preset"), options.pop("keepers"), options.pop("takers")
@@ -269,11 +270,12 @@ def _keepaway_checkpoint(policy: str) -> tuple[dict[str, Any], KeepawayConfig]:
             f"policy={policy!r} is not a keepaway policy; allowed: {', '.join(KEEPAWAY_POLICIES)}, "
             "or a keepaway run directory or checkpoint file"
         )
-    explicit = [o for o in _task_overrides() if o.startswith("domain.") and not o.startswith("domain.batch=")]
+    free = ("domain.batch=", "domain.kernels=")  # how it runs, not what task
+    explicit = [o for o in _task_overrides() if o.startswith("domain.") and not o.startswith(free)]
     if explicit:
         raise ConfigError(
             f"{explicit[0]} does not apply to a checkpoint, which is played on the task it learned "
-            "(set only domain.batch, episodes and seed)"
+            "(set only domain.batch, domain.kernels, episodes and seed)"
         )
     ckpt = load_checkpoint(policy, domain="keepaway")
     try:
