@@ -191,3 +191,15 @@ def test_trainer_factory_builds_the_simulated_trainers():
     )
     assert isinstance(plain, ValueProxyTrainer)
     assert make_trainer(_cfg("train"), None) is None
+
+
+def test_numba_kernels_need_the_cpu():
+    from hfrl_torch.experiment.evaluate import keepaway_kernels
+
+    cfg = _cfg("train", "domain=keepaway", "agent=sarsa", "domain.kernels=numba", "device=cuda")
+    with pytest.raises(ConfigError) as info:
+        keepaway_kernels(cfg)
+    assert str(info.value) == (
+        "domain.kernels='numba' runs on the CPU only, not device=cuda; use domain.kernels=auto or torch"
+    )
+    assert keepaway_kernels(_cfg("train", "domain=keepaway", "agent=sarsa", "device=cuda")) == "auto"

@@ -175,7 +175,6 @@ KEEPAWAY_POLICIES = ("hand", "random", "hold")  # besides a keepaway run directo
 def keepaway_config(cfg: DictConfig):
     """The simulator's ``KeepawayConfig`` from ``domain`` (checked, one-line errors)."""
     from hfrl_torch.envs.keepaway import PRESETS, KeepawayConfig
-    from hfrl_torch.envs.keepaway.params import KERNELS
 
     cfg.domain.preset = str(cfg.domain.preset)  # the command line reads preset=2005 as a number
     turnover = OmegaConf.select(cfg, "domain.turnover_cycles")
@@ -193,8 +192,24 @@ def keepaway_config(cfg: DictConfig):
         decision_period_cycles=decision_period(cfg),
         intercept_horizon=require_int(cfg, "domain.intercept_horizon", 1, 200),
         collision_passes=require_int(cfg, "domain.collision_passes", 1, 100),
-        kernels=require_choice(cfg, "domain.kernels", KERNELS) if "kernels" in cfg.domain else "auto",
+        kernels=keepaway_kernels(cfg),
     )
+
+
+def keepaway_kernels(cfg: DictConfig) -> str:
+    """``domain.kernels`` (``auto`` where the config predates it), checked against ``device``."""
+    from hfrl_torch.envs.keepaway.params import KERNELS
+
+    if "kernels" not in cfg.domain:
+        return "auto"
+    kernels = require_choice(cfg, "domain.kernels", KERNELS)
+    device = str(OmegaConf.select(cfg, "device", default="cpu"))
+    if kernels == "numba" and device != "cpu":
+        raise ConfigError(
+            f"domain.kernels='numba' runs on the CPU only, not device={device}; "
+            "use domain.kernels=auto or torch"
+        )
+    return kernels
 
 
 def decision_period(cfg: DictConfig) -> int:
@@ -211,8 +226,9 @@ def evaluate_keepaway(cfg: DictConfig, progress: bool = True) -> dict[str, objec
     ``policy`` is a benchmark policy (hand, random, hold; played on the task ``domain`` sets) or a
     keepaway Sarsa run directory or checkpoint file, played greedily (no exploration, no learning; a
     trainer's run by its fusion rule, :mod:`hfrl_torch.agents.sarsa.policy`). A checkpoint is played on the
-    task it learned, its saved ``domain_config``: only ``domain.batch``, ``episodes`` and ``seed`` come from
-    the command line, and other ``domain.*`` values there are refused rather than ignored. Field f plays for
+    task it learned, its saved ``domain_config``: only ``domain.batch``, ``domain.kernels`` (how it runs),
+    ``episodes`` and ``seed`` come from the command line, and other ``domain.*`` values there are refused
+    rather than ignored. Field f plays for
     the checkpoint's team f % teams; the summary then adds ``teams`` and ``per_team_mean_s``.
     """
     from dataclasses import asdict
@@ -235,7 +251,7 @@ def evaluate_keepaway(cfg: DictConfig, progress: bool = True) -> dict[str, objec
         config = keepaway_config(cfg)
     else:
         ckpt, config = _keepaway_checkpoint(policy)
-        config = config.replace(kernels=keepaway_config(cfg).kernels)
+        config = config.replace(kernels=keepaway_kernels(cfg))
     set_threads(cfg)
     options = asdict(config)
     options.pop("preset"), options.pop("keepers"), options.pop("takers")

@@ -348,6 +348,9 @@ def check_sarsa(cfg: DictConfig) -> None:
     share = require_bool(cfg, "agent.share_weights")
     keepers = require_int(cfg, "domain.keepers", 3, 11)
     takers = require_int(cfg, "domain.takers", 2, 11)
+    from hfrl_torch.experiment.evaluate import keepaway_kernels
+
+    keepaway_kernels(cfg)
     active = tilings * (4 * keepers + 2 * takers - 3)
     if OmegaConf.select(cfg, "agent.max_traces") is not None:
         require_int(cfg, "agent.max_traces", active, 10_000_000)

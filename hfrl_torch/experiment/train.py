@@ -29,7 +29,15 @@ TRAINER_LABELS = {
 }
 
 
-RESUMABLE = ("agent.iterations", "agent.hours", "agent.episodes", "threads", "device", "logger.backend")
+RESUMABLE = (
+    "agent.iterations",
+    "agent.hours",
+    "agent.episodes",
+    "threads",
+    "device",
+    "domain.kernels",
+    "logger.backend",
+)
 SAVES_AS_IT_GOES = ("cem", "sarsa")  # agents whose runs checkpoint while they train, so can resume
 
 
@@ -37,7 +45,7 @@ def resume_config(cfg: DictConfig, run_dir: Path, checkpoint: dict, overrides: l
     """The saved config of ``run_dir`` with the few overrides that do not redefine the run.
 
     A resumed run must stay the run its config and checkpoint describe: only the budget
-    (``agent.iterations``), threads, device and logging may change.
+    (``agent.iterations``), threads, device, keepaway kernels and logging may change.
     """
     saved = OmegaConf.create(checkpoint["config"])
     values = []

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
+from typing import Any
 
 import pytest
 import torch
@@ -14,37 +16,50 @@ from hypothesis import strategies as st
 from hfrl_torch.envs.keepaway import KeepawayConfig, KeepawaySimulator, hand_coded_actions
 from hfrl_torch.envs.keepaway.params import physics_preset, resolve_kernels
 from hfrl_torch.envs.keepaway.physics import resolve_collisions
-from hfrl_torch.envs.keepaway.skills import get_open_grid, get_open_target, intercept_estimate
+from hfrl_torch.envs.keepaway.skills import (
+    INTERCEPT_BLOCK,
+    get_open_grid,
+    get_open_target,
+    intercept_estimate,
+)
 
 FIELDS = 256
 
 
-def random_scene(seed: int, players: int, spread: float) -> dict[str, torch.Tensor]:
-    """Players, ball and velocities of FIELDS fields drawn from ``seed``; ``spread`` is the half
-    size of the square they stand in (small values crowd them together)."""
+def random_scene(seed: int, players: int, spread: float, fields: int = FIELDS) -> dict[str, torch.Tensor]:
+    """Players, ball and velocities of ``fields`` fields drawn from ``seed``; ``spread`` is the
+    half size of the square they stand in (small values crowd them together)."""
     g = torch.Generator().manual_seed(seed)
 
     def uniform(*shape: int, scale: float) -> torch.Tensor:
         return (2 * torch.rand(shape, generator=g) - 1) * scale
 
     return {
-        "pos": uniform(FIELDS, players, 2, scale=spread),
-        "vel": uniform(FIELDS, players, 2, scale=0.6),
-        "body": uniform(FIELDS, players, scale=math.pi),
-        "ball_pos": uniform(FIELDS, 2, scale=spread),
-        "ball_vel": uniform(FIELDS, 2, scale=2.5),
+        "pos": uniform(fields, players, 2, scale=spread),
+        "vel": uniform(fields, players, 2, scale=0.6),
+        "body": uniform(fields, players, scale=math.pi),
+        "ball_pos": uniform(fields, 2, scale=spread),
+        "ball_vel": uniform(fields, 2, scale=2.5),
     }
 
 
-def both(fn, *args, **kwargs) -> tuple:
+def both(fn: Callable[..., Any], *args: Any, **kwargs: Any) -> tuple[Any, Any]:
     """``fn`` with the numba and with the torch kernels."""
     return fn(*args, **kwargs, kernels="numba"), fn(*args, **kwargs, kernels="torch")
 
 
+def bits(x: torch.Tensor) -> torch.Tensor:
+    """The raw bits of a float32 tensor (so +0.0 and -0.0 differ), other tensors as they are."""
+    return x.view(torch.int32) if x.dtype == torch.float32 else x
+
+
 def assert_same_bits(a: tuple | torch.Tensor, b: tuple | torch.Tensor) -> None:
+    """Every tensor of ``a`` equals the one of ``b`` bit for bit."""
     for x, y in zip(a, b, strict=True) if isinstance(a, tuple) else [(a, b)]:
         assert x.dtype == y.dtype and x.shape == y.shape
-        assert torch.equal(x, y), f"{int((x != y).sum())} of {x.numel()} values differ"
+        assert torch.equal(bits(x), bits(y)), (
+            f"{int((bits(x) != bits(y)).sum())} of {x.numel()} values differ"
+        )
 
 
 @settings(max_examples=25, deadline=None)
@@ -62,12 +77,16 @@ def test_interception_search_matches_torch(seed: int, preset: str, spread: float
     assert_same_bits(numba_out, torch_out)
 
 
-def test_interception_reaches_found_and_fallback_branches() -> None:
-    s = random_scene(7, 5, 12.0)
-    cycles, _ = intercept_estimate(
-        s["pos"], s["vel"], s["body"], s["ball_pos"], s["ball_vel"], 30, physics_preset("2005")
-    )
+def test_interception_found_and_fallback_alike_beyond_one_block() -> None:
+    """More fields than the torch path's CPU block, players both within and beyond the horizon."""
+    s = random_scene(7, 5, 12.0, fields=INTERCEPT_BLOCK + 77)
+    args = (s["pos"], s["vel"], s["body"], s["ball_pos"], s["ball_vel"], 30, physics_preset("2005"))
+    numba_out, torch_out = both(intercept_estimate, *args)
+    assert_same_bits(numba_out, torch_out)
+    cycles = numba_out[0]
     assert (cycles <= 30).any() and (cycles > 30).any()
+    grid = get_open_grid(20.0, 20.0, torch.device("cpu"), torch.float32)
+    assert_same_bits(*both(get_open_target, s["pos"][:, :3], s["pos"][:, 3:], s["ball_pos"], grid))
 
 
 @settings(max_examples=25, deadline=None)
@@ -102,6 +121,33 @@ def test_collision_passes_match_torch(seed: int, objects: int, crowd: float) -> 
         assert numba_out[2].any()
 
 
+# float32 offsets whose float64-rounded hypot differs from the correctly rounded one (and so
+# from torch.hypot's vectorised loop): both paths must use the same hypot
+HYPOT_CASES = [
+    (0.16723857820034027, -0.19954605400562286),
+    (0.05256061628460884, -0.2538454532623291),
+    (-0.3308587670326233, -0.26200100779533386),
+    (-0.05224471166729927, 0.2748788893222809),
+    (-0.11462058871984482, -0.09864940494298935),
+    (0.20291109383106232, 0.15218333899974823),
+]
+
+
+def test_collisions_at_hypot_rounding_cases() -> None:
+    """64 fields, so that torch's hypot would take its vectorised loop; the first few overlap."""
+    pos = torch.zeros(64, 2, 2)
+    pos[:, 1] = 5.0
+    pos[: len(HYPOT_CASES), 1] = torch.tensor(HYPOT_CASES)
+    numba_out, torch_out = both(resolve_collisions, pos, torch.ones_like(pos), torch.tensor([0.3, 0.3]), 10)
+    assert_same_bits(numba_out, torch_out)
+    assert numba_out[2][: len(HYPOT_CASES)].all() and not numba_out[2][len(HYPOT_CASES) :].any()
+
+
+def test_collisions_check_the_radii() -> None:
+    with pytest.raises(ValueError, match=r"radius has shape \(3,\); expected \(2,\), one per object"):
+        resolve_collisions(torch.zeros(1, 2, 2), torch.zeros(1, 2, 2), torch.ones(3))
+
+
 def test_coincident_objects_separate_alike() -> None:
     pos = torch.zeros(3, 4, 2)
     pos[1, 2] = pos[1, 1] = torch.tensor([1.0, -1.0])
@@ -128,6 +174,7 @@ def test_simulated_episodes_identical(
         )
         for kernels in ("numba", "torch")
     ]
+    assert [sim.kernels for sim in sims] == ["numba", "torch"]
     ended = 0
     for _ in range(150):
         for sim in sims:
@@ -135,7 +182,7 @@ def test_simulated_episodes_identical(
             outcome = sim.step(hand_coded_actions(obs, keepers, takers), auto_reset=True)
         ended += int(outcome.ended.sum())
         for name, value in sims[0].state.tensors().items():
-            assert torch.equal(value, getattr(sims[1].state, name)), name
+            assert torch.equal(bits(value), bits(getattr(sims[1].state, name))), name
     assert ended > 0
 
 

@@ -1,8 +1,9 @@
-"""Compiled (numba) kernels of the two look-up searches of a keepaway cycle, the CPU fast path.
+"""Compiled (numba) kernels of three searches of a keepaway cycle, the CPU fast path.
 
 GoToBall's interception search and GetOpen's choice of grid point evaluate [H + 1] and [25]
-candidates per player; as tensor ops they dominate a cycle's time on CPU (about a third), as
-loops they stop at the first reachable cycle and keep everything in registers. Each kernel does
+candidates per player, and the collision passes go through the object pairs in order; as tensor
+ops they were a third of a cycle's time on CPU, as loops they stop at the first reachable cycle
+(or the first pass without overlap) and keep everything in registers. Each kernel does
 the torch path's float arithmetic in the same order (no fused multiply-adds, sums left to right),
 so both paths give the same bits: ``tests/keepaway/test_keepaway_kernels.py`` checks it, on
 single calls and on whole simulated episodes. The kernels take float32 arrays (the simulator's
@@ -214,6 +215,6 @@ def push_apart(
 
 @numba.njit(cache=True, inline="always")
 def _hypot(x: float, y: float) -> float:
-    """hypot of float32 values, correctly rounded as torch's (SLEEF) hypot: the squares and their
-    sum are (nearly) exact in float64."""
+    """sqrt(x^2 + y^2) of float32 values in float64, rounded once to float32, as
+    ``physics.hypot_f64`` on the torch path."""
     return np.float32(np.sqrt(np.float64(x) * np.float64(x) + np.float64(y) * np.float64(y)))

@@ -96,8 +96,9 @@ class KeepawayConfig:
         5 = 500 ms as in the thesis's human-feedback experiments).
     :param intercept_horizon: look-ahead of GoToBall in cycles.
     :param collision_passes: maximal passes of the collision resolution.
-    :param kernels: how GoToBall's and GetOpen's searches run, not what they compute:
-        ``"auto"`` (numba on CPU, torch elsewhere), ``"numba"`` or ``"torch"``.
+    :param kernels: how GoToBall's and GetOpen's searches and the collision passes run, not what
+        they compute: ``"auto"`` (numba for float32 on CPU, torch otherwise), ``"numba"`` or
+        ``"torch"``.
     """
 
     preset: str = "2005"

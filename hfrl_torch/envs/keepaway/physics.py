@@ -30,15 +30,31 @@ def unit(angle: Tensor) -> Tensor:
     return torch.stack((torch.cos(angle), torch.sin(angle)), dim=-1)
 
 
+def _components(vec: Tensor) -> tuple[Tensor, Tensor]:
+    """x and y of vectors [..., 2], contiguous on CPU (strided inputs miss torch's vectorised
+    atan2 and hypot there, several times slower)."""
+    x, y = vec[..., 0], vec[..., 1]
+    return (x.contiguous(), y.contiguous()) if vec.device.type == "cpu" else (x, y)
+
+
 def direction(vec: Tensor) -> Tensor:
-    """Angle of vectors [..., 2] (components made contiguous: strided inputs miss the
-    vectorised atan2, several times slower on CPU)."""
-    return torch.atan2(vec[..., 1].contiguous(), vec[..., 0].contiguous())
+    """Angle of vectors [..., 2]."""
+    x, y = _components(vec)
+    return torch.atan2(y, x)
 
 
 def norm(vec: Tensor) -> Tensor:
-    """Euclidean length of vectors [..., 2] (contiguous components, as :func:`direction`)."""
-    return torch.hypot(vec[..., 0].contiguous(), vec[..., 1].contiguous())
+    """Euclidean length of vectors [..., 2]."""
+    x, y = _components(vec)
+    return torch.hypot(x, y)
+
+
+def hypot_f64(x: Tensor, y: Tensor) -> Tensor:
+    """sqrt(x^2 + y^2) in float64, rounded once to the inputs' dtype: the numba kernels' hypot,
+    so that both paths agree to the bit (torch's own hypot is correctly rounded in its
+    vectorised loop only, and this one is not quite correctly rounded)."""
+    x64, y64 = x.double(), y.double()
+    return torch.sqrt(x64 * x64 + y64 * y64).to(x.dtype)
 
 
 def dot(a: Tensor, b: Tensor) -> Tensor:
@@ -187,13 +203,15 @@ def resolve_collisions(
     :returns: new positions, new velocities, and which objects collided [B, O].
     """
     num = pos.shape[-2]
+    if radius.shape != (num,):
+        raise ValueError(f"radius has shape {tuple(radius.shape)}; expected ({num},), one per object")
     if resolve_kernels(kernels, pos.device, pos.dtype) == "numba":
         from hfrl_torch.envs.keepaway.kernels_numba import push_apart
 
         pairs, contact, check, fallback = _pair_constants(tuple(radius.tolist()))
         new_pos = pos.reshape(-1, num, 2).clone()
         collided = torch.empty(new_pos.shape[:2], dtype=torch.bool)
-        consts = torch.tensor([slack, 1e-9, 0.5, 1.0])
+        consts = torch.tensor([slack, 1e-9, 0.5, 1.0], dtype=torch.float32)
         push_apart(
             new_pos.numpy(),
             pairs.numpy(),
@@ -216,7 +234,7 @@ def resolve_collisions(
     contacts = radius[first] + radius[second]
     for _ in range(max_passes):
         x_all, y_all = torch.stack(xs, -1), torch.stack(ys, -1)
-        gap = torch.hypot(
+        gap = hypot_f64(
             x_all.index_select(1, second) - x_all.index_select(1, first),
             y_all.index_select(1, second) - y_all.index_select(1, first),
         )
@@ -225,16 +243,22 @@ def resolve_collisions(
         for k, (i, j) in enumerate(pairs):
             contact = radii[i] + radii[j]
             dx, dy = xs[j] - xs[i], ys[j] - ys[i]
-            dist = torch.hypot(dx, dy)
+            dist = hypot_f64(dx, dy)
             overlap = dist < contact
             safe = dist > 1e-9
             inv = 1.0 / dist.clamp_min(1e-9)
             angle = k * PAIR_FALLBACK_STEP
             ax = torch.where(safe, dx * inv, math.cos(angle))
             ay = torch.where(safe, dy * inv, math.sin(angle))
-            push = torch.where(overlap, 0.5 * (contact - dist) + slack, 0.0)
-            xs[i], xs[j] = xs[i] - push * ax, xs[j] + push * ax
-            ys[i], ys[j] = ys[i] - push * ay, ys[j] + push * ay
+            push = 0.5 * (contact - dist) + slack
+            xs[i], xs[j] = (
+                torch.where(overlap, xs[i] - push * ax, xs[i]),
+                torch.where(overlap, xs[j] + push * ax, xs[j]),
+            )
+            ys[i], ys[j] = (
+                torch.where(overlap, ys[i] - push * ay, ys[i]),
+                torch.where(overlap, ys[j] + push * ay, ys[j]),
+            )
             hit[i] = hit[i] | overlap
             hit[j] = hit[j] | overlap
     collided = torch.stack(hit, -1)

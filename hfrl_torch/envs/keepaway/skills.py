@@ -20,6 +20,7 @@ from hfrl_torch.envs.keepaway.physics import (
     TURN_KIND,
     direction,
     dot,
+    hypot_f64,
     kick_power_rate,
     norm,
     unit,
@@ -245,7 +246,7 @@ def intercept_estimate(
             *(t.contiguous().numpy() for t in (pos, vel, hx, hy, ball_pos, ball_vel)),
             torch.stack(cos_limits).numpy(),
             *(t.numpy() for t in (travel, travel * travel, series, cruise_part, table)),
-            torch.tensor([*consts, 1.0 - physics.ball_decay]).numpy(),
+            torch.tensor([*consts, 1.0 - physics.ball_decay], dtype=torch.float32).numpy(),
             cycles.numpy(),
             points.numpy(),
         )
@@ -302,7 +303,8 @@ def _intercept_torch(
     along = travel_1d[first_cycle]
     point = ball_pos.unsqueeze(1) + along.unsqueeze(-1) * ball_vel.unsqueeze(1)
     rest = (ball_pos + ball_vel / (1.0 - physics.ball_decay)).unsqueeze(1).expand_as(point)
-    fallback_cycles = horizon + 1 + torch.ceil(norm(rest - pos) / cruise).long()
+    to_rest = rest - pos
+    fallback_cycles = horizon + 1 + torch.ceil(hypot_f64(to_rest[..., 0], to_rest[..., 1]) / cruise).long()
     cycles = torch.where(found, first_cycle, fallback_cycles)
     return cycles, torch.where(found.unsqueeze(-1), point, rest)
 
@@ -325,8 +327,8 @@ def _first_reachable_torch(
     kickable: float,
     horizon: int,
 ) -> Tensor:
-    """H + 1 - the first reachable cycle [B, P] as uint8 (0 where none is): the tensor twin of
-    ``kernels_numba.first_reachable_cycles``, evaluated for all cycles at once."""
+    """H + 1 - the first reachable cycle [B, P] as uint8 (0 where none is), evaluated for all
+    cycles at once (the search of ``kernels_numba.intercept_search``)."""
     like = need_lin
     weights = _weights(horizon, like.device)
     batch, players = like.shape
@@ -602,7 +604,7 @@ def get_open_target(
         least_congested_points(
             grid.contiguous().numpy(),
             players.numpy(),
-            pass_from.contiguous().numpy(),
+            pass_from.expand(batch, 2).contiguous().numpy(),
             keepers,
             consts.to(keeper_pos.dtype).numpy(),
             choice.numpy(),
