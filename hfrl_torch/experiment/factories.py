@@ -156,15 +156,22 @@ def make_credit(cfg: DictConfig) -> CreditModel:
     return UniformDelay(low, require_float(cfg, "human.uniform_high", low + 1e-6))
 
 
-def check_human(cfg: DictConfig) -> None:
-    """Check ``human``, the settings of H^ (TAMER's model of the feedback)."""
-    require_choice(cfg, "human.name", ("linear",))
+def check_human(cfg: DictConfig, model: str = "linear") -> None:
+    """Check ``human``, the settings of H^ (TAMER's model of the feedback): ``linear`` on Tetris
+    features, or ``tile_coded`` on the keepaway keepers' tiles."""
+    require_choice(cfg, "human.name", (model,))
     require_float(cfg, "human.alpha", 1e-12)
-    require_choice(cfg, "human.features", ("knox", "bt"))
+    if model == "linear":
+        require_choice(cfg, "human.features", ("knox", "bt"))
+    else:
+        require_choice(cfg, "human.model", ("team", "keeper"))
     make_credit(cfg)
     require_float(cfg, "human.window", 1e-6)
     require_bool(cfg, "human.renormalise")
-    require_float(cfg, "human.seconds_per_placement", 1e-6)
+    if model == "linear":
+        require_float(cfg, "human.seconds_per_placement", 1e-6)
+    else:
+        require_int(cfg, "human.history", 1, 1024)
 
 
 def check_tamer(cfg: DictConfig) -> None:

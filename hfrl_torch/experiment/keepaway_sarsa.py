@@ -378,7 +378,7 @@ KEEPAWAY_TRAINERS = ("none", "oracle", "replay", "interactive")
 
 def check_keepaway_feedback(cfg: DictConfig) -> None:
     """Check ``fusion``, ``trainer`` and ``human`` for keepers taught by a trainer (thesis Chapter 5)."""
-    from hfrl_torch.experiment.factories import make_credit, make_weight_schedule
+    from hfrl_torch.experiment.factories import check_human, make_weight_schedule
 
     fusion = require_choice(cfg, "fusion.name", KEEPAWAY_SCHEMES)
     trainer = cfg.trainer.name
@@ -406,13 +406,7 @@ def check_keepaway_feedback(cfg: DictConfig) -> None:
             f"agent.fields_per_learner={cfg.agent.fields_per_learner} with a trainer: one trainer watches "
             "one field, so each learner plays one field; allowed: 1"
         )
-    require_choice(cfg, "human.name", ("tile_coded",))
-    require_float(cfg, "human.alpha", 1e-12)
-    require_choice(cfg, "human.model", ("team", "keeper"))
-    make_credit(cfg)
-    require_float(cfg, "human.window", 1e-6)
-    require_bool(cfg, "human.renormalise")
-    require_int(cfg, "human.history", 1, 1024)
+    check_human(cfg, "tile_coded")
     make_weight_schedule(cfg, 1)
     fusion_scaling(cfg)
     if trainer == "interactive":

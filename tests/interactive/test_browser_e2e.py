@@ -7,18 +7,24 @@ Needs Debian's chromium (``/usr/bin/chromium``, installed by ``.ci/run``) and th
 
 from __future__ import annotations
 
+import contextlib
 import json
 import shutil
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import pytest
 import torch
 
 from hfrl_torch.common.checkpoint import load_checkpoint
 from hfrl_torch.feedback.log import load_feedback_log
+
+if TYPE_CHECKING:
+    from playwright.sync_api import Page
 
 ROOT = Path(__file__).resolve().parents[2]
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
@@ -60,38 +66,44 @@ def _train(run_dir: Path, *overrides: str) -> subprocess.Popen:
     return subprocess.Popen(args, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
 
 
-def test_person_presses_keys_and_the_learner_gets_them(tmp_path):
-    run_dir = tmp_path / "live"
-    proc = _train(
-        run_dir,
-        "trainer=interactive",
-        "trainer.port=0",
-        "trainer.actions_per_s=4",
-        "agent.iterations=3",
-        "agent.population=10",
-        "agent.games_per_candidate=1",
-        "agent.eval_games=3",
-        "agent.watch_pieces=60",
-    )
+@contextlib.contextmanager
+def _teach(run_dir: Path, ready: str, wait: float, *overrides: str) -> Iterator[Page]:
+    """train.py with the browser trainer and a Chromium page on it once ``ready`` (a JS condition)
+    holds; leaving the block closes the page (the person leaves) and the run must then finish."""
+    proc = _train(run_dir, "trainer=interactive", "trainer.port=0", *overrides)
     try:
         url = _url(proc)
         with playwright.sync_playwright() as p:
             browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
             page = browser.new_page()
             page.goto(url)
-            page.wait_for_function("document.getElementById('score').textContent !== '-'", timeout=60_000)
-            for key in ["/", "/", "z"]:
-                page.keyboard.press(key)
-                page.wait_for_timeout(300)
-            page.click("#good")
-            page.wait_for_timeout(300)
-            assert page.inner_text("#given") == "4"
-            (tmp_path / "page.png").write_bytes(page.screenshot())
-            browser.close()  # the person leaves: training goes on from the game alone
-        assert proc.wait(timeout=240) == 0
+            page.wait_for_function(ready, timeout=60_000)
+            yield page
+            browser.close()
+        assert proc.wait(timeout=wait) == 0
     finally:
         if proc.poll() is None:
             proc.kill()
+
+
+def _press(page: Page, keys: list[str]) -> None:
+    for key in keys:
+        page.keyboard.press(key)
+        page.wait_for_timeout(300)
+
+
+def test_person_presses_keys_and_the_learner_gets_them(tmp_path):
+    run_dir = tmp_path / "live"
+    overrides = ["trainer.actions_per_s=4", "agent.iterations=3", "agent.population=10"]
+    overrides += ["agent.games_per_candidate=1", "agent.eval_games=3", "agent.watch_pieces=60"]
+    ready = "document.getElementById('score').textContent !== '-'"
+    with _teach(run_dir, ready, 240, *overrides) as page:
+        _press(page, ["/", "/", "z"])
+        page.click("#good")
+        page.wait_for_timeout(300)
+        assert page.inner_text("#given") == "4"
+        (tmp_path / "page.png").write_bytes(page.screenshot())
+    # the person left: training went on from the game alone
 
     events = load_feedback_log(run_dir / "feedback.jsonl")
     assert [e.value for e in events] == [1.0, 1.0, -1.0, 1.0]
@@ -108,38 +120,16 @@ def test_person_presses_keys_and_the_learner_gets_them(tmp_path):
 
 def test_person_teaches_the_keepers_in_the_browser(tmp_path):
     run_dir = tmp_path / "live"
-    proc = _train(
-        run_dir,
-        "domain=keepaway",
-        "trainer=interactive",
-        "trainer.port=0",
-        "trainer.actions_per_s=20",
-        "trainer.wait_for_page_s=60",
-        "agent.hours=0.02",
-        "agent.table_bits=12",
-    )
-    try:
-        url = _url(proc)
-        with playwright.sync_playwright() as p:
-            browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
-            page = browser.new_page()
-            page.goto(url)
-            page.wait_for_function(
-                "document.getElementById('score').textContent.endsWith(' s')", timeout=60_000
-            )
-            assert "keepers" in page.inner_text("#help") and page.inner_text("#speed-unit").startswith(
-                "decisions"
-            )
-            for key in ["/", "z"]:
-                page.keyboard.press(key)
-                page.wait_for_timeout(300)
-            assert page.inner_text("#given") == "2"
-            (tmp_path / "page.png").write_bytes(page.screenshot())
-            browser.close()  # the person leaves: the keepers go on from the environment alone
-        assert proc.wait(timeout=120) == 0
-    finally:
-        if proc.poll() is None:
-            proc.kill()
+    overrides = ["domain=keepaway", "trainer.actions_per_s=20", "trainer.wait_for_page_s=60"]
+    overrides += ["agent.hours=0.02", "agent.table_bits=12"]
+    ready = "document.getElementById('score').textContent.endsWith(' s')"
+    with _teach(run_dir, ready, 120, *overrides) as page:
+        assert "keepers" in page.inner_text("#help")
+        assert page.inner_text("#speed-unit").startswith("decisions")
+        _press(page, ["/", "z"])
+        assert page.inner_text("#given") == "2"
+        (tmp_path / "page.png").write_bytes(page.screenshot())
+    # the person left: the keepers went on from the environment alone
 
     events = load_feedback_log(run_dir / "feedback.jsonl")
     assert [e.value for e in events] == [1.0, -1.0]

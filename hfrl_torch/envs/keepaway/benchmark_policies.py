@@ -32,18 +32,15 @@ def play_benchmark_policy(
     policy: str,
     episodes: int,
     *,
-    preset: str = "2005",
     keepers: int = 3,
     takers: int = 2,
-    batch: int = 256,
     seed: int = 0,
     device: str = "cpu",
-    progress: bool = True,
-    **sim_options: Any,
+    **options: Any,
 ) -> dict[str, Any]:
-    """Play ``episodes`` episodes of benchmark ``policy`` ("random", "hold" or "hand") and
-    summarise them as :func:`play_keeper_policy` does (Random draws from a generator seeded
-    ``seed + 1``)."""
+    """Play ``episodes`` episodes of benchmark ``policy`` ("random", "hold" or "hand"): the other
+    keyword arguments and the summary are :func:`play_keeper_policy`'s (Random draws from a
+    generator seeded ``seed + 1``)."""
     generator = torch.Generator(device=device)
     generator.manual_seed(seed + 1)
     benchmark = make_benchmark_policy(policy, keepers, takers, generator)
@@ -52,17 +49,7 @@ def play_benchmark_policy(
         return benchmark(obs)
 
     return play_keeper_policy(
-        choose,
-        policy,
-        episodes,
-        preset=preset,
-        keepers=keepers,
-        takers=takers,
-        batch=batch,
-        seed=seed,
-        device=device,
-        progress=progress,
-        **sim_options,
+        choose, policy, episodes, keepers=keepers, takers=takers, seed=seed, device=device, **options
     )
 
 

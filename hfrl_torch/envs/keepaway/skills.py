@@ -252,9 +252,21 @@ def intercept_estimate(
         )
         return cycles, points
     return _intercept_torch(
-        pos, vel, hx, hy, ball_pos, ball_vel, cos_limits, travel, series, cruise_part, table,
-        accel, cruise, horizon, physics,
-    )  # fmt: skip
+        pos,
+        vel,
+        hx,
+        hy,
+        ball_pos,
+        ball_vel,
+        cos_limits,
+        travel,
+        series,
+        cruise_part,
+        table,
+        accel,
+        cruise,
+        physics,
+    )
 
 
 def _intercept_torch(
@@ -271,14 +283,16 @@ def _intercept_torch(
     table_2d: Tensor,
     accel: float,
     cruise: float,
-    horizon: int,
     physics: PhysicsParams,
 ) -> tuple[Tensor, Tensor]:
     """:func:`intercept_estimate` with tensor ops, the twin of ``kernels_numba.intercept_search``:
-    per (field, player) coefficients of the quadratics in the ball's travel, then all cycles
-    at once."""
+    per (field, player) coefficients of the quadratics in the ball's travel, then all cycles at
+    once, the first reachable one marked by the largest weight H + 1 - i."""
+    horizon = travel_1d.shape[0] - 1
     travel = travel_1d[:, None, None]
     travel_sq = travel * travel
+    series, cruise_part = series_1d[:, None, None], cruise_1d[:, None, None]
+    table = table_2d[:, :, None, None]
     vx, vy = ball_vel[:, None, 0], ball_vel[:, None, 1]
     v_sq = vx * vx + vy * vy
     dx = ball_pos[:, None, 0] - pos[..., 0]
@@ -291,62 +305,24 @@ def _intercept_torch(
     head_lin = vx * hx + vy * hy
     head_const = ex * hx + ey * hy
     forward = (vel[..., 0] * hx + vel[..., 1] * hy).clamp_min(0.0)
-    first = (forward + accel).clamp(max=physics.player_speed_max)
-    first_gap = first - cruise
-    score = _first_reachable_torch(
-        need_lin, need_const, err_lin, err_const, head_lin, head_const, first_gap, cos_limits,
-        v_sq, travel, travel_sq, series_1d[:, None, None], cruise_1d[:, None, None],
-        table_2d[:, :, None, None], physics.kickable_distance, horizon,
-    )  # fmt: skip
-    found = score > 0
-    first_cycle = (horizon + 1 - score.long()).clamp(max=horizon)
-    along = travel_1d[first_cycle]
-    point = ball_pos.unsqueeze(1) + along.unsqueeze(-1) * ball_vel.unsqueeze(1)
-    rest = (ball_pos + ball_vel / (1.0 - physics.ball_decay)).unsqueeze(1).expand_as(point)
-    to_rest = rest - pos
-    fallback_cycles = horizon + 1 + torch.ceil(hypot_f64(to_rest[..., 0], to_rest[..., 1]) / cruise).long()
-    cycles = torch.where(found, first_cycle, fallback_cycles)
-    return cycles, torch.where(found.unsqueeze(-1), point, rest)
-
-
-def _first_reachable_torch(
-    need_lin: Tensor,
-    need_const: Tensor,
-    err_lin: Tensor,
-    err_const: Tensor,
-    head_lin: Tensor,
-    head_const: Tensor,
-    first_gap: Tensor,
-    cos_limits: list[Tensor],
-    v_sq: Tensor,
-    travel: Tensor,
-    travel_sq: Tensor,
-    series: Tensor,
-    cruise_part: Tensor,
-    table: Tensor,
-    kickable: float,
-    horizon: int,
-) -> Tensor:
-    """H + 1 - the first reachable cycle [B, P] as uint8 (0 where none is), evaluated for all
-    cycles at once (the search of ``kernels_numba.intercept_search``)."""
-    like = need_lin
-    weights = _weights(horizon, like.device)
-    batch, players = like.shape
-    block = batch if like.device.type != "cpu" else INTERCEPT_BLOCK
-    score = torch.empty(batch, players, dtype=torch.uint8, device=like.device)
+    first_gap = (forward + accel).clamp(max=physics.player_speed_max) - cruise
+    weights = _weights(horizon, pos.device)
+    batch, players = pos.shape[:2]
+    block = batch if pos.device.type != "cpu" else INTERCEPT_BLOCK
+    score = torch.empty(batch, players, dtype=torch.uint8, device=pos.device)
     for lo in range(0, batch, block):
         hi = min(lo + block, batch)
         shape = (horizon + 1, hi - lo, players)
-        need = _scratch("need", shape, like)
-        err = _scratch("err", shape, like)
-        tmp = _scratch("tmp", shape, like)
-        reach = _scratch("reach", shape, like)
-        ready = _scratch("ready", shape, like, torch.bool)
-        can = _scratch("can", shape, like, torch.uint8)
-        moved = _scratch("moved", (horizon + 1, hi - lo, 1), like)
+        need = _scratch("need", shape, pos)
+        err = _scratch("err", shape, pos)
+        tmp = _scratch("tmp", shape, pos)
+        reach = _scratch("reach", shape, pos)
+        ready = _scratch("ready", shape, pos, torch.bool)
+        can = _scratch("can", shape, pos, torch.uint8)
+        moved = _scratch("moved", (horizon + 1, hi - lo, 1), pos)
         torch.mul(travel_sq, v_sq[lo:hi], out=moved)  # not addcmul: no fused multiply-add
         torch.mul(travel, need_lin[lo:hi], out=need)
-        need.add_(need_const[lo:hi]).add_(moved).clamp_min_(0.0).sqrt_().sub_(kickable)
+        need.add_(need_const[lo:hi]).add_(moved).clamp_min_(0.0).sqrt_().sub_(physics.kickable_distance)
         torch.mul(travel, err_lin[lo:hi], out=err)
         err.add_(err_const[lo:hi]).add_(moved).clamp_min_(1e-12).rsqrt_()
         torch.mul(travel, head_lin[lo:hi], out=tmp)
@@ -362,8 +338,16 @@ def _first_reachable_torch(
         torch.where(ready, reach, tmp, out=tmp)
         torch.le(need, tmp, out=ready)
         torch.mul(ready, weights, out=can)
-        torch.amax(can, 0, out=score[lo:hi])  # the first reachable cycle wins
-    return score
+        torch.amax(can, 0, out=score[lo:hi])
+    found = score > 0
+    first_cycle = (horizon + 1 - score.long()).clamp(max=horizon)
+    along = travel_1d[first_cycle]
+    point = ball_pos.unsqueeze(1) + along.unsqueeze(-1) * ball_vel.unsqueeze(1)
+    rest = (ball_pos + ball_vel / (1.0 - physics.ball_decay)).unsqueeze(1).expand_as(point)
+    to_rest = rest - pos
+    fallback_cycles = horizon + 1 + torch.ceil(hypot_f64(to_rest[..., 0], to_rest[..., 1]) / cruise).long()
+    cycles = torch.where(found, first_cycle, fallback_cycles)
+    return cycles, torch.where(found.unsqueeze(-1), point, rest)
 
 
 @functools.lru_cache(maxsize=16)
