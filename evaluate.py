@@ -7,7 +7,8 @@ import sys
 import hydra
 from omegaconf import DictConfig
 
-from hfrl_torch.app import check_overrides, guarded
+from hfrl_torch.experiment.cli import guarded, precheck
+from hfrl_torch.experiment.config import validate_evaluate
 from hfrl_torch.experiment.evaluate import evaluate
 
 
@@ -18,5 +19,5 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
-    check_overrides(sys.argv[1:], "evaluate")
+    precheck(sys.argv[1:], "evaluate", validate_evaluate)
     main()

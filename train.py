@@ -7,8 +7,8 @@ import sys
 import hydra
 from omegaconf import DictConfig
 
-from hfrl_torch.app import check_overrides, guarded, implied_overrides, resume_log_dir
-from hfrl_torch.experiment.factories import validate_train_config
+from hfrl_torch.experiment.cli import guarded, precheck
+from hfrl_torch.experiment.config import validate_train
 from hfrl_torch.experiment.train import train
 
 
@@ -19,10 +19,5 @@ def main(cfg: DictConfig) -> float | None:
 
 
 if __name__ == "__main__":
-    implied = implied_overrides(sys.argv[1:])
-    if implied:
-        print(f"Implied by the command line: {' '.join(implied)}", file=sys.stderr)
-    sys.argv += implied
-    check_overrides(sys.argv[1:], "train", validate_train_config)
-    sys.argv += resume_log_dir(sys.argv[1:])
+    precheck(sys.argv[1:], "train", validate_train)
     main()

@@ -18,3 +18,54 @@ def one_thread() -> Iterator[None]:
     yield
     torch.set_num_threads(torch_threads)
     numba.set_num_threads(numba_threads)
+
+
+def _compose_train(*overrides: str):
+    """The composed (and checked) ``train`` config of ``overrides``, as ``train.py`` would run it."""
+    from hydra import compose, initialize_config_dir
+
+    from hfrl_torch.experiment.cli import CONF_DIR
+    from hfrl_torch.experiment.config import validate_train
+
+    with initialize_config_dir(str(CONF_DIR), version_base=None):
+        cfg = compose("train", overrides=list(overrides))
+    validate_train(cfg)
+    return cfg
+
+
+def _run_learner(run_dir, *overrides: str, checkpoint=None, stop_after: int | None = None, prepare=None):
+    """Run the learner of ``overrides`` (``train.py``'s loop, no Hydra run directory) in ``run_dir``;
+    returns the learner and its result. ``stop_after``: stop as Ctrl-C would after that many points (the
+    result is then None); ``prepare``: called with the learner before it learns."""
+    from hfrl_torch.experiment.registry import learner_for
+    from hfrl_torch.experiment.run import Callback, Interrupt, RunFiles, learn
+
+    cfg = _compose_train("logger.backend=none", *overrides)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    learner = learner_for(cfg.agent.name)(cfg, run_dir, checkpoint)
+    if prepare is not None:
+        prepare(learner)
+    interrupt = Interrupt()
+
+    class StopAfter(Callback):
+        def on_point(self, learner, point) -> None:
+            if stop_after is not None and len(learner.history) >= stop_after:
+                interrupt.requested = True
+
+    try:
+        final = learn(learner, RunFiles(run_dir, cfg), [StopAfter()], interrupt)
+    except KeyboardInterrupt:
+        final = None
+    return learner, final
+
+
+@pytest.fixture
+def compose_train():
+    """``compose_train(*overrides)``: the checked ``train`` config of ``overrides``."""
+    return _compose_train
+
+
+@pytest.fixture
+def run_learner():
+    """``run_learner(run_dir, *overrides, checkpoint=None)``: train.py's loop on ``overrides`` in ``run_dir``."""
+    return _run_learner

@@ -12,14 +12,14 @@ from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
 
 from hfrl_torch.agents.pg import PolicyGradient, natural_direction, score_and_fisher
-from hfrl_torch.app import CONF_DIR
+from hfrl_torch.experiment.cli import CONF_DIR
 from hfrl_torch.common.checkpoint import load_checkpoint
 from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.envs.tetris import TetrisRules
 from hfrl_torch.envs.tetris.engine_numba import play
 from hfrl_torch.envs.tetris.features import BT
 from hfrl_torch.experiment.evaluate import evaluate_tetris
-from hfrl_torch.experiment.tetris_pg import check_pg, run_pg, train_pg
+from hfrl_torch.experiment.config import validate_train
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -120,52 +120,48 @@ def test_sampling_keeps_to_allowed_placements_and_is_seeded():
     assert torch.equal(torch.stack([b.act(feats, mask, terminal) for _ in range(800)]), draws)
 
 
-def test_run_pg_is_deterministic_and_counts_games():
-    kw = dict(rules=TetrisRules(6, 8), games=4, lr=0.003, learners=3, seed=4, games_per_update=2)
-    a, b = run_pg(**kw, max_pieces=40), run_pg(**kw, max_pieces=40)
-    assert a["lines"].shape == (3, 4) and torch.equal(a["lines"], b["lines"])
-    assert torch.equal(a["weights"], b["weights"]) and a["updates"].tolist() == [2, 2, 2]
-    assert (a["pieces"] > 0).all() and (a["pieces"] <= 40).all()
+SMALL = ["agent=pg", "domain.width=6", "domain.height=8"]
+
+
+def test_pg_learner_is_deterministic_and_counts_games(tmp_path, run_learner):
+    over = [*SMALL, "agent.games=4", "agent.lr=0.003", "agent.learners=3", "seed=4", "agent.games_per_update=2"]
+    over += ["domain.max_pieces=40", "agent.eval_games=0"]
+    a, _ = run_learner(tmp_path / "a", *over)
+    b, _ = run_learner(tmp_path / "b", *over)
+    assert a.lines.shape == (3, 4) and torch.equal(a.lines, b.lines)
+    assert torch.equal(a.pg.weight, b.pg.weight) and a.pg.updates.tolist() == [2, 2, 2]
+    assert (a.pieces > 0).all() and (a.pieces <= 40).all()
 
 
 @pytest.mark.parametrize(("natural", "lr", "per_update"), [(False, 0.003, 1), (True, 1.0, 5)])
-def test_learned_policies_clear_clearly_more_lines_than_random_and_untrained_ones(natural, lr, per_update):
+def test_learned_policies_clear_clearly_more_lines_than_random_and_untrained_ones(
+    tmp_path, run_learner, natural, lr, per_update
+):
+    over = [*SMALL, "agent.games=100", f"agent.lr={lr}", "agent.learners=10", "seed=0", f"agent.natural={natural}"]
+    over += [f"agent.games_per_update={per_update}", "domain.max_pieces=2000", "agent.eval_games=0"]
+    out, _ = run_learner(tmp_path, *over)
     rules = TetrisRules(6, 8)
-    out = run_pg(
-        rules, 100, lr, learners=10, seed=0, natural=natural, games_per_update=per_update, max_pieces=2000
-    )
     seeds = torch.arange(500, 540)
-    learned = torch.stack([play(rules, BT, w, seeds, max_pieces=2000)[0] for w in out["weights"]]).double()
+    learned = torch.stack([play(rules, BT, w, seeds, max_pieces=2000)[0] for w in out.pg.weight]).double()
     zeros = torch.zeros(13)
     random_lines = play(rules, BT, zeros, seeds, random_policy=True)[0].double().mean()
     untrained = play(rules, BT, zeros, seeds)[0].double().mean()  # w = 0: always the first placement
     assert learned.mean() > 2.5 * max(random_lines, untrained)
     assert (learned.mean(1) > untrained).sum() >= 8  # most learners, not just a lucky few
-    lines = out["lines"].double()  # the stochastic policies got better while training
+    lines = out.lines.double()  # the stochastic policies got better while training
     assert lines[:, -20:].mean() > 2.0 * lines[:, :10].mean()
 
 
-def test_train_pg_writes_metrics_and_a_checkpoint_that_evaluate_plays(tmp_path):
-    cfg = _cfg(
-        "train",
-        "agent=pg",
-        "agent.games=3",
-        "agent.learners=2",
-        "agent.natural=true",
-        "agent.eval_games=2",
-        "domain.width=6",
-        "domain.height=8",
-        "domain.max_pieces=50",
-        "logger=none",
-    )
-    final = train_pg(cfg, tmp_path)
+def test_train_pg_writes_metrics_and_a_checkpoint_that_evaluate_plays(tmp_path, run_learner):
+    over = [*SMALL, "agent.games=3", "agent.learners=2", "agent.natural=true", "agent.eval_games=2"]
+    _, final = run_learner(tmp_path, *over, "domain.max_pieces=50")
     rows = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
     assert [r["game"] for r in rows] == [1, 2, 3]
     assert final["eval/lines_per_game_mean"] == rows[-1]["eval/lines_per_game_mean"] >= 0
     assert "eval/greedy_lines_ci95_high" in final
     ckpt = load_checkpoint(tmp_path, domain="tetris", agent="pg")
     assert ckpt["policy"]["kind"] == "linear" and ckpt["policy"]["weights"].shape == (13,)
-    assert torch.equal(ckpt["policy"]["weights"], ckpt["state"]["weights"][0])
+    assert torch.equal(ckpt["policy"]["weights"], ckpt["state"]["learner"]["weight"][0])
     res = evaluate_tetris(_cfg("evaluate", f"policy={tmp_path}", "games=3"), progress=False)
     assert res["games"] == 3 and res["board"] == "6x8" and res["max_pieces"] == 50
 
@@ -179,7 +175,7 @@ def test_train_pg_writes_metrics_and_a_checkpoint_that_evaluate_plays(tmp_path):
         ("agent.temperature=0", "agent.temperature=0 is invalid"),
         ("agent.games_per_update=0", "agent.games_per_update=0 is invalid: must be an integer >= 1"),
         ("agent.baseline_decay=2", "agent.baseline_decay=2 is invalid"),
-        ("fusion=linear", "fusion='linear' fuses a trainer's H^ into the policy; choose a trainer"),
+        ("fusion=linear trainer=none", "fusion='linear' fuses a trainer's H^ into the policy; choose a trainer"),
         ("fusion=exponential trainer=oracle", "fusion='exponential' with agent=pg is invalid; allowed: none"),
         ("fusion=linear trainer=oracle human.features=bt", "agent=pg with a trainer needs"),
     ],
@@ -191,39 +187,44 @@ def test_bad_values_fail_with_one_line(override, message):
         else ["agent=pg", *override.split()]
     )
     with pytest.raises(ConfigError) as info:
-        check_pg(_cfg("train", *args))
+        validate_train(_cfg("train", *args))
     assert message in str(info.value) and "\n" not in str(info.value)
 
 
-def test_bias_shifts_the_policy_and_the_score_is_taken_under_it():
+def test_fused_values_shift_the_policy_and_the_score_is_taken_under_it():
     weight = _f([[0.0, 0.0]])
-    bias = _f([[0.0, math.log(3.0), 0.0, 0.0]])  # H^ likes placement 1: p = (1/4, 3/4)
-    score, fisher = score_and_fisher(FEATS, ALLOWED, torch.tensor([0]), weight, 1.0, bias=bias)
+    values = _f([[0.0, math.log(3.0), 0.0, 0.0]])  # theta . f = 0, H^ likes placement 1: p = (1/4, 3/4)
+    score, fisher = score_and_fisher(FEATS, ALLOWED, torch.tensor([0]), weight, 1.0, values=values)
     fbar = 0.25 * _f([1.0, 0.0]) + 0.75 * _f([0.0, 2.0])
     torch.testing.assert_close(score[0], _f([1.0, 0.0]) - fbar)
     torch.testing.assert_close(fisher[0], 3 / 16 * _f([[1.0, -2.0], [-2.0, 4.0]]))  # p0 p1 (f0-f1)(f0-f1)^T
     agent = PolicyGradient(2, 1, 0.1)
-    p = agent(FEATS, MASK, TERMINAL, bias).exp()[0]
+    p = agent(FEATS, MASK, TERMINAL, values).exp()[0]
     torch.testing.assert_close(p[:2], _f([0.25, 0.75]))
 
 
-def test_pg_with_a_simulated_trainer_learns_h_and_updates_trust_per_learner(tmp_path):
-    cfg = _cfg(
-        "train",
-        "agent=pg",
-        "fusion=linear",
-        "trainer=oracle",
-        "agent.games=6",
-        "agent.learners=3",
-        "agent.eval_games=0",
-        "domain.width=6",
-        "domain.height=8",
-        "logger.backend=none",
-    )
-    final = train_pg(cfg, tmp_path)
+def test_pg_with_a_simulated_trainer_learns_h_and_updates_trust_per_learner(tmp_path, run_learner):
+    over = [*SMALL, "fusion=linear", "trainer=oracle", "agent.games=6", "agent.learners=3", "agent.eval_games=0"]
+    _, final = run_learner(tmp_path, *over)
     rows = [json.loads(x) for x in (tmp_path / "metrics.jsonl").read_text().splitlines()]
     assert rows[0]["fusion/weight_mean"] == 0.5 and rows[-1]["fusion/weight_mean"] != 0.5
     assert all(0.0 <= r["fusion/match_rate_mean"] <= 1.0 for r in rows)
     assert sum(r["feedback/given_mean"] for r in rows) > 0 and final["eval/lines_per_game_mean"] >= 0
     events = (tmp_path / "feedback.jsonl").read_text().splitlines()
     assert len(events) > 10 and '"simulated:oracle"' in events[-1]
+
+
+def test_a_resumed_taught_run_equals_an_uninterrupted_one(tmp_path, run_learner):
+    over = [*SMALL, "fusion=linear", "trainer=oracle", "agent.learners=2", "agent.eval_games=0", "seed=1"]
+    over += ["domain.max_pieces=60"]
+    whole, _ = run_learner(tmp_path / "whole", *over, "agent.games=6")
+    _, stopped = run_learner(tmp_path / "part", *over, "agent.games=6", stop_after=2)
+    assert stopped is None and 2 <= len(load_checkpoint(tmp_path / "part")["history"]) < 6
+    part, _ = run_learner(tmp_path / "part", *over, "agent.games=6", checkpoint=load_checkpoint(tmp_path / "part"))
+    assert torch.equal(whole.lines, part.lines) and torch.equal(whole.pg.weight, part.pg.weight)
+    assert torch.equal(whole.human.model.weight, part.human.model.weight)
+    assert (tmp_path / "whole" / "metrics.jsonl").read_text() == (tmp_path / "part" / "metrics.jsonl").read_text()
+    events = [(tmp_path / d / "feedback.jsonl").read_text().splitlines() for d in ("whole", "part")]
+    # the same events (a resumed log holds a second session header, and its events carry its session name)
+    body = [[e.split('"session"')[0] for e in log if '"schema"' not in e] for log in events]
+    assert body[0] == body[1]

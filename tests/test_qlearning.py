@@ -10,14 +10,14 @@ from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
 
 from hfrl_torch.agents.qlearning import LinearQLearning
-from hfrl_torch.app import CONF_DIR
+from hfrl_torch.experiment.cli import CONF_DIR
 from hfrl_torch.common.checkpoint import load_checkpoint
 from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.envs.tetris import TetrisRules
 from hfrl_torch.envs.tetris.engine_numba import play
 from hfrl_torch.envs.tetris.features import BT
 from hfrl_torch.experiment.evaluate import evaluate_tetris
-from hfrl_torch.experiment.tetris_qlearning import check_qlearning, run_qlearning, train_qlearning
+from hfrl_torch.experiment.config import validate_train
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -76,51 +76,57 @@ def test_epsilon_greedy_keeps_to_allowed_placements_and_is_seeded():
     assert torch.equal(torch.stack([again.act(feats, mask, terminal, 1.0) for _ in range(600)]), draws)
 
 
-def test_run_qlearning_is_deterministic_and_counts_games():
-    kw = dict(rules=TetrisRules(6, 8), games=4, alpha=0.002, gamma=0.9, epsilon=0.2, learners=3, seed=4)
-    a, b = run_qlearning(**kw, max_pieces=40), run_qlearning(**kw, max_pieces=40)
-    assert a["lines"].shape == (3, 4) and torch.equal(a["lines"], b["lines"])
-    assert torch.equal(a["weights"], b["weights"]) and torch.equal(a["bias"], b["bias"])
-    assert (a["pieces"] > 0).all() and (a["pieces"] <= 40).all()
-    assert not torch.equal(a["weights"], torch.zeros_like(a["weights"]))
+SMALL = ["agent=qlearning", "domain.width=6", "domain.height=8"]
 
 
-def test_learned_policies_clear_clearly_more_lines_than_random_and_untrained_ones():
+def test_qlearning_learner_is_deterministic_and_counts_games(tmp_path, run_learner):
+    over = [*SMALL, "agent.games=4", "agent.alpha=0.002", "agent.gamma=0.9", "agent.epsilon=0.2"]
+    over += ["agent.learners=3", "seed=4", "domain.max_pieces=40", "agent.eval_games=0"]
+    a, _ = run_learner(tmp_path / "a", *over)
+    b, _ = run_learner(tmp_path / "b", *over)
+    assert a.lines.shape == (3, 4) and torch.equal(a.lines, b.lines)
+    assert torch.equal(a.agent_q.weight, b.agent_q.weight) and torch.equal(a.agent_q.bias, b.agent_q.bias)
+    assert (a.pieces > 0).all() and (a.pieces <= 40).all()
+    assert not torch.equal(a.agent_q.weight, torch.zeros_like(a.agent_q.weight))
+
+
+def test_learned_policies_clear_clearly_more_lines_than_random_and_untrained_ones(tmp_path, run_learner):
+    over = [*SMALL, "agent.games=100", "agent.alpha=0.003", "agent.gamma=0.9", "agent.epsilon=0.1"]
+    out, _ = run_learner(tmp_path, *over, "agent.learners=10", "seed=0", "domain.max_pieces=2000", "agent.eval_games=0")
     rules = TetrisRules(6, 8)
-    out = run_qlearning(rules, 100, alpha=0.003, gamma=0.9, epsilon=0.1, learners=10, seed=0, max_pieces=2000)
     seeds = torch.arange(500, 540)
-    learned = torch.stack([play(rules, BT, w, seeds, max_pieces=2000)[0] for w in out["weights"]]).double()
+    learned = torch.stack([play(rules, BT, w, seeds, max_pieces=2000)[0] for w in out.agent_q.weight]).double()
     zeros = torch.zeros(13)
     random_lines = play(rules, BT, zeros, seeds, random_policy=True)[0].double().mean()
     untrained = play(rules, BT, zeros, seeds)[0].double().mean()  # w = 0: always the first placement
     assert learned.mean() > 3.0 * max(random_lines, untrained)
     assert (learned.mean(1) > untrained).sum() >= 8  # most learners, not just a lucky few
-    lines = out["lines"].double()
+    lines = out.lines.double()
     assert lines[:, -20:].mean() > 1.4 * lines[:, :10].mean()  # and they got better while training
 
 
-def test_train_qlearning_writes_metrics_and_a_checkpoint_that_evaluate_plays(tmp_path):
-    cfg = _cfg(
-        "train",
-        "agent=qlearning",
-        "agent.games=3",
-        "agent.learners=2",
-        "agent.eval_games=2",
-        "domain.width=6",
-        "domain.height=8",
-        "domain.max_pieces=50",
-        "logger=none",
-    )
-    final = train_qlearning(cfg, tmp_path)
+def test_train_qlearning_writes_metrics_and_a_checkpoint_that_evaluate_plays(tmp_path, run_learner):
+    over = [*SMALL, "agent.games=3", "agent.learners=2", "agent.eval_games=2", "domain.max_pieces=50"]
+    _, final = run_learner(tmp_path, *over)
     rows = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
     assert [r["game"] for r in rows] == [1, 2, 3]
     assert final["eval/lines_per_game_mean"] == rows[-1]["eval/lines_per_game_mean"] >= 0
     assert "eval/greedy_lines_mean" in final and "train/td_error_mean" in rows[0]
     ckpt = load_checkpoint(tmp_path, domain="tetris", agent="qlearning")
     assert ckpt["policy"]["kind"] == "linear" and ckpt["policy"]["weights"].shape == (13,)
-    assert torch.equal(ckpt["policy"]["weights"], ckpt["state"]["weights"][0])
+    assert torch.equal(ckpt["policy"]["weights"], ckpt["state"]["learner"]["weight"][0])
     res = evaluate_tetris(_cfg("evaluate", f"policy={tmp_path}", "games=3"), progress=False)
     assert res["games"] == 3 and res["board"] == "6x8" and res["max_pieces"] == 50
+
+
+def test_a_resumed_run_equals_an_uninterrupted_one(tmp_path, run_learner):
+    over = [*SMALL, "agent.learners=2", "agent.eval_games=0", "domain.max_pieces=60", "seed=2"]
+    whole, _ = run_learner(tmp_path / "whole", *over, "agent.games=6")
+    _, stopped = run_learner(tmp_path / "part", *over, "agent.games=6", stop_after=2)
+    assert stopped is None and 2 <= len(load_checkpoint(tmp_path / "part")["history"]) < 6
+    part, _ = run_learner(tmp_path / "part", *over, "agent.games=6", checkpoint=load_checkpoint(tmp_path / "part"))
+    assert torch.equal(whole.lines, part.lines) and torch.equal(whole.agent_q.weight, part.agent_q.weight)
+    assert (tmp_path / "whole" / "metrics.jsonl").read_text() == (tmp_path / "part" / "metrics.jsonl").read_text()
 
 
 @pytest.mark.parametrize(
@@ -135,5 +141,5 @@ def test_train_qlearning_writes_metrics_and_a_checkpoint_that_evaluate_plays(tmp
 )
 def test_bad_values_fail_with_one_line(override, message):
     with pytest.raises(ConfigError) as info:
-        check_qlearning(_cfg("train", "agent=qlearning", override))
+        validate_train(_cfg("train", "agent=qlearning", override))
     assert message in str(info.value) and "\n" not in str(info.value)

@@ -1,6 +1,6 @@
 """SMDP Sarsa(lambda) keepers: the three routines of the thesis's Figure 5.4 against hand-computed weights,
 replacing traces, epsilon-greedy ties, the learner batch, per-keeper SMDP rewards in keepaway, a short
-learning run against the random policy, and train_sarsa with its checkpoint and resume."""
+learning run against the random policy, and the keepaway learner with its checkpoint and resume."""
 
 from __future__ import annotations
 
@@ -11,17 +11,12 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from hfrl_torch.agents.sarsa import SarsaLambda, trace_capacity
-from hfrl_torch.app import CONF_DIR
+from hfrl_torch.agents.sarsa import sarsa_keepers as make_sarsa_keepers
 from hfrl_torch.common.checkpoint import load_checkpoint
 from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.envs.keepaway import KeepawayConfig, KeepawayEnv, play_benchmark_policy
-from hfrl_torch.experiment.keepaway_sarsa import (
-    KeepawayRecords,
-    check_sarsa,
-    make_sarsa_keepers,
-    run_sarsa_keepers,
-    train_sarsa,
-)
+from hfrl_torch.experiment.cli import CONF_DIR
+from hfrl_torch.experiment.config import check_sarsa
 from hfrl_torch.models.tile_coding import TileCoding, keepaway_tile_widths
 
 torch.set_num_threads(1)
@@ -188,11 +183,11 @@ class RecordingSarsa(SarsaLambda):
         super().__init__(*args, **kwargs)
         self.env, self.events = env, []
 
-    def decide(self, learners, obs, mask, reward):
+    def decide(self, learners, obs, mask, reward, **kwargs):
         starting = self.last_action[learners] < 0
         clock = self.env.sim.state.episode_cycles.clone()
         self.events.append(("decide", learners.tolist(), starting.tolist(), reward.tolist(), clock.tolist()))
-        return super().decide(learners, obs, mask, reward)
+        return super().decide(learners, obs, mask, reward, **kwargs)
 
     def end_episode(self, learners, reward):
         pending = self.last_action[learners] >= 0
@@ -200,17 +195,25 @@ class RecordingSarsa(SarsaLambda):
         super().end_episode(learners, reward)
 
 
+KEEPAWAY = ["domain=keepaway", "logger=none"]
+
+
 @pytest.mark.parametrize("sync,per_learner", [("all", 1), ("any", 1), ("any", 3)])
-def test_smdp_rewards_are_per_keeper(sync, per_learner):
+def test_smdp_rewards_are_per_keeper(tmp_path, run_learner, sync, per_learner):
     teams, n = 3, 3
     fields = teams * per_learner
-    config = KeepawayConfig()
-    env = KeepawayEnv(fields, config, seed=11, sync=sync)
-    coder = TileCoding(keepaway_tile_widths(), 3, learners=teams * n, size=2**12)
-    slots = torch.arange(fields * n)
-    tables = (slots // n // per_learner) * n + slots % n  # each field's keepers: their team's tables
-    agent = RecordingSarsa(env, coder, epsilon=0.3, seed=11, tables=tables)
-    records = run_sarsa_keepers(env, agent, KeepawayRecords(fields, n, per_learner), episodes=2 * per_learner)
+
+    def record_every_call(learner) -> None:
+        """The learner's env in the ``sync`` mode under test, and Sarsa keepers that note every call."""
+        learner.env = KeepawayEnv(fields, KeepawayConfig(), seed=11, sync=sync)
+        coder = TileCoding(keepaway_tile_widths(), 3, learners=teams * n, size=2**12)
+        slots = torch.arange(fields * n)
+        tables = (slots // n // per_learner) * n + slots % n  # each field's keepers: their team's tables
+        learner.agent_sarsa = RecordingSarsa(learner.env, coder, epsilon=0.3, seed=11, tables=tables)
+
+    over = [*KEEPAWAY, f"agent.learners={teams}", f"agent.fields_per_learner={per_learner}", "agent.hours=0"]
+    learner, _ = run_learner(tmp_path, *over, f"agent.episodes={2 * per_learner}", prepare=record_every_call)
+    agent, records = learner.agent_sarsa, learner.records
 
     durations = {f: [] for f in range(fields)}
     for row in records.table.tolist():
@@ -250,17 +253,23 @@ def test_smdp_rewards_are_per_keeper(sync, per_learner):
     assert int(records.table[:, 5:].sum() + records.decisions.sum()) == decided  # per-keeper counts
 
 
-def test_short_learning_run_beats_the_random_policy():
+def test_short_learning_run_beats_the_random_policy(tmp_path, run_learner):
     # 500 ms decisions (the thesis's setting) and one weight table shared by the keepers of all 32
     # fields, so that about one simulated hour of experience, a minute of CPU, reaches one learner.
-    config = KeepawayConfig(decision_period_cycles=5)
     random = play_benchmark_policy("random", 400, batch=200, seed=7, progress=False, decision_period_cycles=5)
     fields = 32
-    env = KeepawayEnv(fields, config, seed=7)
-    coder = TileCoding(keepaway_tile_widths(), 3, learners=1, size=2**18)
-    agent = SarsaLambda(coder, seed=7, tables=torch.zeros(fields * 3, dtype=torch.int64))
-    records = run_sarsa_keepers(env, agent, KeepawayRecords(fields, 3), cycles=1200)
-    table = records.table.double()
+
+    def one_shared_table(learner) -> None:
+        """The fields in lock-step (``sync="all"``) and one weight table for the keepers of every field."""
+        learner.env = KeepawayEnv(fields, KeepawayConfig(decision_period_cycles=5), seed=7)
+        coder = TileCoding(keepaway_tile_widths(), 3, learners=1, size=2**18)
+        learner.agent_sarsa = SarsaLambda(coder, seed=7, tables=torch.zeros(fields * 3, dtype=torch.int64))
+
+    over = [*KEEPAWAY, "agent.learners=1", f"agent.fields_per_learner={fields}", "domain.decision_period_cycles=5"]
+    over += [f"agent.hours={1200 * fields / 36000}", "seed=7", "agent.log_minutes=60"]
+    learner, _ = run_learner(tmp_path, *over, prepare=one_shared_table)
+    table = learner.records.table.double()
+    table[:, 2] = table[:, 2] / fields  # the field's own clock (the learner's is the sum of its 32 fields')
     late = table[table[:, 2] >= 800, 3] / 10.0  # episodes that ended in the last third
     assert late.numel() >= 50
     assert float(late.mean()) > random["ci95_high"], (float(late.mean()), random["mean_s"])  # 9.9 s vs 6.1 s
@@ -269,6 +278,10 @@ def test_short_learning_run_beats_the_random_policy():
 def _cfg(*overrides: str):
     with initialize_config_dir(str(CONF_DIR), version_base=None):
         return compose("train", overrides=["domain=keepaway", "agent=sarsa", "logger=none", *overrides])
+
+
+def _train(run_dir, run_learner, *overrides: str, checkpoint=None):
+    return run_learner(run_dir, *KEEPAWAY, *overrides, checkpoint=checkpoint)[1]
 
 
 def test_defaults_are_valid_and_bad_values_fail():
@@ -288,10 +301,9 @@ def test_defaults_are_valid_and_bad_values_fail():
             check_sarsa(_cfg(*override.split()))
 
 
-def test_train_writes_curves_and_checkpoint_and_resumes(tmp_path):
+def test_train_writes_curves_and_checkpoint_and_resumes(tmp_path, run_learner):
     small = ["agent.learners=2", "agent.table_bits=12", "agent.log_minutes=0.05", "agent.log_episodes=1"]
-    cfg = _cfg(*small, "agent.hours=0.003", "agent.checkpoint_minutes=0.1")
-    final = train_sarsa(cfg, tmp_path)
+    final = _train(tmp_path, run_learner, *small, "agent.hours=0.003", "agent.checkpoint_minutes=0.1")
     lines = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
     assert {"hours", "episodes"} <= {line["axis"] for line in lines}
     assert final["episode_s_mean"] > 0 and 1 <= final["learners"] <= 2
@@ -301,8 +313,7 @@ def test_train_writes_curves_and_checkpoint_and_resumes(tmp_path):
     assert ckpt["state"]["agent"]["weight"].shape == (2 * 3, 2**12)
     assert int(ckpt["state"]["records"]["clock"].min()) >= 0.003 * 36000
 
-    more = _cfg(*small, "agent.hours=0.006", "agent.checkpoint_minutes=0.1")
-    train_sarsa(more, tmp_path, checkpoint=ckpt)
+    _train(tmp_path, run_learner, *small, "agent.hours=0.006", "agent.checkpoint_minutes=0.1", checkpoint=ckpt)
     again = load_checkpoint(tmp_path)
     assert again["state"]["resumes"] == 1
     assert torch.equal(again["state"]["records"]["rows"][: rows.shape[0]], rows)  # history kept
@@ -310,14 +321,14 @@ def test_train_writes_curves_and_checkpoint_and_resumes(tmp_path):
     assert len(again["history"]) > len(ckpt["history"])
 
 
-def test_fields_per_learner_share_tables_and_sum_the_clock(tmp_path):
+def test_fields_per_learner_share_tables_and_sum_the_clock(tmp_path, run_learner):
     small = [
         "agent.learners=2",
         "agent.fields_per_learner=3",
         "agent.table_bits=12",
         "agent.log_minutes=0.05",
     ]
-    final = train_sarsa(_cfg(*small, "agent.hours=0.006", "agent.checkpoint_minutes=0.1"), tmp_path)
+    final = _train(tmp_path, run_learner, *small, "agent.hours=0.006", "agent.checkpoint_minutes=0.1")
     assert final["learners"] == 2
     ckpt = load_checkpoint(tmp_path, domain="keepaway", agent="sarsa")
     state = ckpt["state"]
@@ -333,7 +344,7 @@ def test_fields_per_learner_share_tables_and_sum_the_clock(tmp_path):
         assert bool((mine[1:, 2] >= mine[:-1, 2]).all())  # learner clock at the end, nondecreasing
     assert int(state["records"]["episodes"].sum()) == rows.shape[0]
 
-    train_sarsa(_cfg(*small, "agent.hours=0.009", "agent.checkpoint_minutes=0.1"), tmp_path, checkpoint=ckpt)
+    _train(tmp_path, run_learner, *small, "agent.hours=0.009", "agent.checkpoint_minutes=0.1", checkpoint=ckpt)
     again = load_checkpoint(tmp_path)["state"]["records"]
     assert torch.equal(again["rows"][: rows.shape[0]], rows)
     assert int(again["clock"].view(2, 3).sum(1).min()) >= 0.009 * 36000

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import json
 import time
+from dataclasses import asdict
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import torch
 from hydra.core.hydra_config import HydraConfig
@@ -13,15 +14,31 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from hfrl_torch.agents.cem.fused_rollout import FusedRollout
+from hfrl_torch.agents.sarsa.policy import load_keeper_policy
 from hfrl_torch.common.checkpoint import load_checkpoint
 from hfrl_torch.common.errors import CheckpointError, ConfigError
 from hfrl_torch.common.stats import summarize
-from hfrl_torch.common.validation import require_bool, require_choice, require_float, require_int
+from hfrl_torch.envs.keepaway import (
+    KeepawayConfig,
+    make_benchmark_policy,
+    play_benchmark_policy,
+    play_keeper_policy,
+    record_episode_gif,
+    record_keeper_gif,
+)
 from hfrl_torch.envs.tetris.features import DELLACHERIE_WEIGHTS, feature_id, feature_size
-from hfrl_torch.experiment.factories import make_rollout, make_rules, set_threads, warm_up
-
-if TYPE_CHECKING:
-    from hfrl_torch.envs.keepaway import KeepawayConfig
+from hfrl_torch.experiment.aggregate import aggregate
+from hfrl_torch.experiment.cli import checked
+from hfrl_torch.experiment.config import check_kernels, validate_evaluate
+from hfrl_torch.experiment.factories import (
+    make_keepaway_config,
+    make_rollout,
+    make_rules,
+    set_threads,
+    warm_up,
+)
+from hfrl_torch.fusion.fusion import Fusion
+from hfrl_torch.fusion.schedules import ConstantWeight
 
 NAMED_POLICIES = ("dellacherie", "random")
 
@@ -65,8 +82,7 @@ def _task_overrides() -> list[str]:
 
 def evaluate_tetris(cfg: DictConfig, progress: bool = True) -> dict[str, object]:
     """Play ``games`` games of ``policy`` and return the summary that evaluate.py prints as JSON."""
-    games = require_int(cfg, "games", 1)
-    require_int(cfg, "seed", 0, 2**62)
+    games = int(cfg.games)
     threads = set_threads(cfg)
     label, features, weights, random_policy, cfg, fused = _tetris_policy(cfg)
     rules = make_rules(cfg)
@@ -78,19 +94,17 @@ def evaluate_tetris(cfg: DictConfig, progress: bool = True) -> dict[str, object]
     rollout = make_rollout(cfg, features=features, random_policy=random_policy)
     feature_label = features
     if fused is not None:
-        rollout = FusedRollout(
-            rules,
-            features,
-            fused["human_features"],
+        weight = float(fused["weight"])
+        fusion = Fusion(
             fused["scheme"],
-            fused["normalise"],
-            cfg.domain.max_pieces,
+            "none",
+            ConstantWeight(weight),
+            scaling="decision" if fused["normalise"] else "none",
         )
+        rollout = FusedRollout(rules, features, fused["human_features"], fusion.eval(), cfg.domain.max_pieces)
         rollout.human_weights = torch.as_tensor(fused["human_weights"], dtype=torch.float64)
-        rollout.weight = float(fused["weight"])
         feature_label = (
-            f"{features} fused with H^ over {fused['human_features']} "
-            f"({fused['scheme']}, w={rollout.weight:.3g})"
+            f"{features} fused with H^ over {fused['human_features']} ({fused['scheme']}, w={weight:.3g})"
         )
     gen = torch.Generator().manual_seed(int(cfg.seed))
     seeds = torch.randint(0, 2**62, (games,), generator=gen, dtype=torch.int64)
@@ -152,14 +166,13 @@ def format_summary(r: dict[str, object]) -> str:
 
 def evaluate(cfg: DictConfig) -> dict[str, object]:
     """Evaluate and print the summary, then one JSON line on stdout."""
+    if not checked():
+        validate_evaluate(cfg)
     if cfg.get("runs") is not None:
-        from hfrl_torch.experiment.aggregate import aggregate
-
         result = aggregate(cfg)
         print(json.dumps(result), flush=True)
         return result
-    domain = require_choice(cfg, "domain.name", ("tetris", "keepaway"))
-    if domain == "tetris":
+    if cfg.domain.name == "tetris":
         result = evaluate_tetris(cfg)
         print(format_summary(result))
     else:
@@ -170,54 +183,6 @@ def evaluate(cfg: DictConfig) -> dict[str, object]:
 
 
 KEEPAWAY_POLICIES = ("hand", "random", "hold")  # besides a keepaway run directory or checkpoint file
-
-
-def keepaway_config(cfg: DictConfig):
-    """The simulator's ``KeepawayConfig`` from ``domain`` (checked, one-line errors)."""
-    from hfrl_torch.envs.keepaway import PRESETS, KeepawayConfig
-
-    cfg.domain.preset = str(cfg.domain.preset)  # the command line reads preset=2005 as a number
-    turnover = OmegaConf.select(cfg, "domain.turnover_cycles")
-    if turnover is not None:
-        turnover = require_int(cfg, "domain.turnover_cycles", 1, 100)
-    return KeepawayConfig(
-        preset=require_choice(cfg, "domain.preset", PRESETS),
-        keepers=require_int(cfg, "domain.keepers", 2, 11),
-        takers=require_int(cfg, "domain.takers", 1, 11),
-        length=require_float(cfg, "domain.length", 1.0, 200.0),
-        width=require_float(cfg, "domain.width", 1.0, 200.0),
-        turnover_cycles=turnover,
-        movement_noise=require_bool(cfg, "domain.movement_noise"),
-        noisy_observations=require_bool(cfg, "domain.noisy_observations"),
-        decision_period_cycles=decision_period(cfg),
-        intercept_horizon=require_int(cfg, "domain.intercept_horizon", 1, 200),
-        collision_passes=require_int(cfg, "domain.collision_passes", 1, 100),
-        kernels=keepaway_kernels(cfg),
-    )
-
-
-def keepaway_kernels(cfg: DictConfig) -> str:
-    """``domain.kernels`` (``auto`` where the config predates it), checked against ``device``."""
-    from hfrl_torch.envs.keepaway.params import KERNELS
-
-    if "kernels" not in cfg.domain:
-        return "auto"
-    kernels = require_choice(cfg, "domain.kernels", KERNELS)
-    device = str(OmegaConf.select(cfg, "device", default="cpu"))
-    if kernels == "numba" and device != "cpu":
-        raise ConfigError(
-            f"domain.kernels='numba' runs on the CPU only, not device={device}; "
-            "use domain.kernels=auto or torch"
-        )
-    return kernels
-
-
-def decision_period(cfg: DictConfig) -> int:
-    """``domain.decision_period_cycles``, where null means 1 (100 ms, the reference) for keepers learning
-    from the environment and 5 (500 ms, the thesis's human-feedback runs) when a trainer watches."""
-    if OmegaConf.select(cfg, "domain.decision_period_cycles") is not None:
-        return require_int(cfg, "domain.decision_period_cycles", 1, 100)
-    return 1 if OmegaConf.select(cfg, "trainer.name", default="none") == "none" else 5
 
 
 def evaluate_keepaway(cfg: DictConfig, progress: bool = True) -> dict[str, object]:
@@ -231,27 +196,14 @@ def evaluate_keepaway(cfg: DictConfig, progress: bool = True) -> dict[str, objec
     rather than ignored. Field f plays for
     the checkpoint's team f % teams; the summary then adds ``teams`` and ``per_team_mean_s``.
     """
-    from dataclasses import asdict
-
-    from hfrl_torch.agents.sarsa.policy import load_keeper_policy
-    from hfrl_torch.envs.keepaway import (
-        make_benchmark_policy,
-        play_benchmark_policy,
-        play_keeper_policy,
-        record_episode_gif,
-        record_keeper_gif,
-    )
-
     policy = "hand" if cfg.policy is None else str(cfg.policy)
-    episodes = require_int(cfg, "episodes", 1)
-    seed = require_int(cfg, "seed", 0, 2**62)
-    batch = require_int(cfg, "domain.batch", 1, 65536)
+    episodes, seed, batch = int(cfg.episodes), int(cfg.seed), int(cfg.domain.batch)
     ckpt = None
     if policy in KEEPAWAY_POLICIES:
-        config = keepaway_config(cfg)
+        config = make_keepaway_config(cfg)
     else:
         ckpt, config = _keepaway_checkpoint(policy)
-        config = config.replace(kernels=keepaway_kernels(cfg))
+        config = config.replace(kernels=check_kernels(cfg))
     set_threads(cfg)
     options = asdict(config)
     options.pop("preset"), options.pop("keepers"), options.pop("takers")
@@ -279,8 +231,6 @@ def evaluate_keepaway(cfg: DictConfig, progress: bool = True) -> dict[str, objec
 def _keepaway_checkpoint(policy: str) -> tuple[dict[str, Any], KeepawayConfig]:
     """The keepaway checkpoint that ``policy`` (a run directory or checkpoint file) names and the task it
     learned (a ``KeepawayConfig``); one-line errors."""
-    from hfrl_torch.envs.keepaway import KeepawayConfig
-
     if not policy.strip() or not Path(policy).exists():
         raise ConfigError(
             f"policy={policy!r} is not a keepaway policy; allowed: {', '.join(KEEPAWAY_POLICIES)}, "

@@ -1,93 +1,85 @@
-"""``make_*`` factories from the Hydra config, each checking its own section first.
-
-Every bad value raises :class:`ConfigError` naming the value and what is allowed,
-before any work starts.
-"""
+"""``make_*`` factories: the objects of a run, built from its config (checked beforehand by ``config.py``)."""
 
 from __future__ import annotations
 
-import re
+import dataclasses
+from collections.abc import Callable
 
 import numba
 import torch
 from omegaconf import DictConfig, OmegaConf
 
 from hfrl_torch.agents.cem import CEMConfig
-from hfrl_torch.agents.cem.cem import NOISE_SCHEDULES, Rollout
-from hfrl_torch.common.errors import ConfigError
-from hfrl_torch.common.logger import BACKENDS, Logger, make_logger
-from hfrl_torch.common.validation import require_bool, require_choice, require_float, require_int
-from hfrl_torch.envs.tetris.env import ENGINES, TetrisEnv
+from hfrl_torch.agents.cem.cem import Rollout
+from hfrl_torch.agents.sarsa import SarsaLambda, sarsa_keepers
+from hfrl_torch.agents.sarsa.policy import load_keeper_policy
+from hfrl_torch.agents.tamer import TamerAgent
+from hfrl_torch.agents.tamer.keeper_tamer import KeeperTamer
+from hfrl_torch.common.checkpoint import load_checkpoint
+from hfrl_torch.envs.keepaway import KeepawayConfig
+from hfrl_torch.envs.tetris import engine_torch
+from hfrl_torch.envs.tetris.engine_numba import play as numba_play
+from hfrl_torch.envs.tetris.env import TetrisEnv
 from hfrl_torch.envs.tetris.features import feature_id, feature_size
 from hfrl_torch.envs.tetris.rules import TetrisRules
 from hfrl_torch.feedback.credit import CreditModel, GammaDelay, PreviousStep, UniformDelay
 from hfrl_torch.feedback.log import FeedbackLog
+from hfrl_torch.fusion.fusion import Fusion
 from hfrl_torch.fusion.schedules import AnnealedWeight, ConstantWeight, TrustWeight, WeightSchedule
-from hfrl_torch.fusion.schemes import FUSIONS
+from hfrl_torch.interactive.keepaway_live import BrowserKeeperTrainer
+from hfrl_torch.interactive.live import DEFAULT_SPEED, KEY_NAMES, LiveTeaching
+from hfrl_torch.interactive.server import TeachingServer
+from hfrl_torch.interactive.session import TeachingSession
+from hfrl_torch.models.tile_coding import TileCoding
+from hfrl_torch.trainers import HumanLikeTiming, OracleTrainer, ReplayTrainer, Trainer, ValueProxyTrainer
+from hfrl_torch.trainers.keepaway_oracle import KeepawayOracle
+from hfrl_torch.trainers.keepaway_replay import KeepawayReplay
+from hfrl_torch.trainers.queue_trainer import QueueTrainer
 
-DOMAINS = ("tetris", "keepaway")
-AGENTS = ("cem", "tamer", "qlearning", "pg", "sarsa")
-TRAINERS = ("none", "oracle", "value_proxy", "replay", "interactive")
-CREDITS = ("previous_step", "gamma", "uniform")
-FEATURE_SETS = ("bt", "knox", "dellacherie", "dt")
+# ------------------------------------------------------------------------------- run
 
 
 def make_device(cfg: DictConfig) -> torch.device:
-    """The torch device named by ``device`` (``cpu``, ``cuda``, ``cuda:N``)."""
-    name = cfg.device
-    if not isinstance(name, str) or not re.fullmatch(r"cpu|cuda(:\d+)?", name):
-        raise ConfigError(f"device={name!r} is invalid; allowed: cpu, cuda, cuda:N")
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise ConfigError(f"device={name!r} was asked for but no CUDA device is available; use device=cpu")
-    return torch.device(name)
+    """The torch device named by ``device``."""
+    return torch.device(cfg.device)
 
 
 def set_threads(cfg: DictConfig) -> int:
     """Apply ``threads`` to torch and numba (the engines' games run in parallel over threads)."""
-    n = require_int(cfg, "threads", 1, 256)
-    n = min(n, numba.config.NUMBA_NUM_THREADS)
+    n = min(int(cfg.threads), numba.config.NUMBA_NUM_THREADS)
     numba.set_num_threads(n)
     torch.set_num_threads(n)  # last: numba's OpenMP layer can reset torch's thread count
     return n
 
 
+# ---------------------------------------------------------------------------- tetris
+
+
 def make_rules(cfg: DictConfig) -> TetrisRules:
     """Tetris rules from ``domain``."""
-    require_choice(cfg, "domain.name", ("tetris",))
+    d = cfg.domain
     return TetrisRules(
-        width=require_int(cfg, "domain.width", 4, 30),
-        height=require_int(cfg, "domain.height", 4, 1000),
-        bag=require_bool(cfg, "domain.bag"),
-        spawn_topout=require_bool(cfg, "domain.spawn_topout"),
-        preview=require_bool(cfg, "domain.preview"),
+        width=d.width, height=d.height, bag=d.bag, spawn_topout=d.spawn_topout, preview=d.preview
     )
 
 
-def check_domain(cfg: DictConfig) -> None:
-    """Check the domain's non-rule settings."""
-    require_choice(cfg, "domain.features", FEATURE_SETS)
-    require_choice(cfg, "domain.engine", ENGINES)
-    require_int(cfg, "domain.max_pieces", 0)
-
-
-def make_env(cfg: DictConfig, batch: int) -> TetrisEnv:
+def make_env(
+    cfg: DictConfig, batch: int, features: str | None = None, max_pieces: int | None = None
+) -> TetrisEnv:
     """A batched ``TetrisEnv`` from ``domain`` and ``device``."""
-    check_domain(cfg)
     return TetrisEnv(
         batch=batch,
         rules=make_rules(cfg),
-        features=cfg.domain.features,
+        features=features or cfg.domain.features,
         engine=cfg.domain.engine,
-        max_pieces=cfg.domain.max_pieces,
+        max_pieces=cfg.domain.max_pieces if max_pieces is None else max_pieces,
         device=make_device(cfg),
         seed=cfg.seed,
     )
 
 
 def make_rollout(cfg: DictConfig, features: str | None = None, random_policy: bool = False) -> Rollout:
-    """Whole-game rollouts of linear policies (or uniformly random placements) on the configured
-    engine (numba on CPU)."""
-    check_domain(cfg)
+    """Whole-game rollouts of linear policies (or uniformly random placements) on the configured engine."""
     rules = make_rules(cfg)
     fid = feature_id(features or cfg.domain.features)
     device = make_device(cfg)
@@ -96,15 +88,10 @@ def make_rollout(cfg: DictConfig, features: str | None = None, random_policy: bo
         engine = "numba" if device.type == "cpu" else "torch"
     max_pieces = cfg.domain.max_pieces
 
-    if engine == "numba":
-        if device.type != "cpu":
-            raise ConfigError(f"domain.engine='numba' runs on the CPU only, not on device={device}")
-        from hfrl_torch.envs.tetris.engine_numba import play
-    else:
-        from hfrl_torch.envs.tetris import engine_torch
-
-        def play(*args, **kwargs):
-            return engine_torch.play(*args, device=device, **kwargs)
+    def play(*args: object, **kwargs: object) -> tuple[torch.Tensor, ...]:
+        if engine == "numba":
+            return numba_play(*args, **kwargs)
+        return engine_torch.play(*args, device=device, **kwargs)
 
     def rollout(
         weights: torch.Tensor, seeds: torch.Tensor
@@ -127,218 +114,224 @@ def warm_up(cfg: DictConfig, features: str | None = None) -> None:
 
 def make_cem_config(cfg: DictConfig) -> CEMConfig:
     """CE settings from ``agent``."""
-    require_choice(cfg, "agent.name", ("cem",))
-    require_int(cfg, "agent.iterations", 1)
-    return CEMConfig(
-        population=require_int(cfg, "agent.population", 2),
-        elite_fraction=require_float(cfg, "agent.elite_fraction", 0.001, 1.0),
-        initial_mean=require_float(cfg, "agent.initial_mean"),
-        initial_variance=require_float(cfg, "agent.initial_variance", 0.0),
-        noise=require_choice(cfg, "agent.noise", NOISE_SCHEDULES),
-        noise_value=require_float(cfg, "agent.noise_value", 0.0),
-        noise_start=require_float(cfg, "agent.noise_start", 0.0),
-        noise_decay=require_float(cfg, "agent.noise_decay", 1e-9),
-        games_per_candidate=require_int(cfg, "agent.games_per_candidate", 1),
-        eval_games=require_int(cfg, "agent.eval_games", 1),
-    )
+    a = cfg.agent
+    names = [f.name for f in dataclasses.fields(CEMConfig)]
+    return CEMConfig(**{k: a[k] for k in names})
+
+
+# ---------------------------------------------------------------------- feedback, H^
 
 
 def make_credit(cfg: DictConfig) -> CreditModel:
     """H^'s credit assignment from ``human.credit``."""
-    name = require_choice(cfg, "human.credit", CREDITS)
-    if name == "previous_step":
+    h = cfg.human
+    if h.credit == "previous_step":
         return PreviousStep()
-    if name == "gamma":
-        return GammaDelay(
-            require_float(cfg, "human.gamma_shape", 1e-6), require_float(cfg, "human.gamma_scale", 1e-6)
-        )
-    low = require_float(cfg, "human.uniform_low", 0.0)
-    return UniformDelay(low, require_float(cfg, "human.uniform_high", low + 1e-6))
+    if h.credit == "gamma":
+        return GammaDelay(h.gamma_shape, h.gamma_scale)
+    return UniformDelay(h.uniform_low, h.uniform_high)
 
 
-def check_human(cfg: DictConfig, model: str = "linear") -> None:
-    """Check ``human``, the settings of H^ (TAMER's model of the feedback): ``linear`` on Tetris
-    features, or ``tile_coded`` on the keepaway keepers' tiles."""
-    require_choice(cfg, "human.name", (model,))
-    require_float(cfg, "human.alpha", 1e-12)
-    if model == "linear":
-        require_choice(cfg, "human.features", ("knox", "bt"))
-    else:
-        require_choice(cfg, "human.model", ("team", "keeper"))
-    make_credit(cfg)
-    require_float(cfg, "human.window", 1e-6)
-    require_bool(cfg, "human.renormalise")
-    if model == "linear":
-        require_float(cfg, "human.seconds_per_placement", 1e-6)
-    else:
-        require_int(cfg, "human.history", 1, 1024)
+def make_tamer(cfg: DictConfig, learners: int, num_features: int) -> TamerAgent:
+    """H^ over Tetris features (TAMER), one learner per board."""
+    h = cfg.human
+    return TamerAgent(num_features, learners, h.alpha, make_credit(cfg), h.window, h.renormalise)
 
 
-def check_tamer(cfg: DictConfig) -> None:
-    """Check ``agent`` for TAMER, and ``human``."""
-    require_int(cfg, "agent.games", 1)
-    require_int(cfg, "agent.learners", 1, 100_000)
-    check_human(cfg)
+def make_keeper_tamer(
+    cfg: DictConfig, agent: SarsaLambda, fields: int, keepers: int
+) -> tuple[KeeperTamer, torch.Tensor]:
+    """H^ on the Sarsa keepers' own tile coding, and the H^ model of each agent row (team or keeper)."""
+    per_keeper = cfg.human.model == "keeper"
+    coder = agent.coder
+    model = TileCoding(
+        coder.widths.tolist(),
+        num_actions=coder.num_actions,
+        learners=fields * keepers if per_keeper else fields,
+        tilings=coder.tilings,
+        size=coder.size,
+        device=coder.weight.device,
+    )
+    h = cfg.human
+    tamer = KeeperTamer(
+        model,
+        fields,
+        alpha=h.alpha,
+        credit=make_credit(cfg),
+        window=h.window,
+        history=h.history,
+        renormalise=h.renormalise,
+    )
+    rows = torch.arange(fields * keepers)
+    owners = rows if per_keeper else torch.div(rows, keepers, rounding_mode="floor")
+    return tamer, owners
 
 
-def make_weight_schedule(cfg: DictConfig, learners: int = 1) -> WeightSchedule:
-    """The weight on H^ of ``fusion`` for each of ``learners``: the trust factor (eq. 4.4), annealed
-    (Knox & Stone) or fixed."""
-    name = require_choice(cfg, "fusion.name", FUSIONS)
-    if name in ("none", "human_only"):
-        return ConstantWeight([0.0] * learners)
-    if name == "annealed":
-        w0 = require_float(cfg, "fusion.weight", 0.0)
-        return AnnealedWeight([w0] * learners, require_float(cfg, "fusion.factor", 1e-9, 1.0))
-    weight = OmegaConf.select(cfg, "fusion.weight")
-    if weight == "trust":
-        return TrustWeight.from_initial(require_float(cfg, "fusion.initial_trust", 0.0), learners)
-    if isinstance(weight, str):
-        raise ConfigError(f"fusion.weight={weight!r} is invalid; allowed: trust, or a number >= 0")
-    return ConstantWeight([require_float(cfg, "fusion.weight", 0.0)] * learners)
-
-
-def fusion_normalises(cfg: DictConfig) -> bool:
-    """Whether Tetris fusion rescales R and H^ to [0, 1] per decision: ``fusion.normalise`` (null: yes, CE
-    values are hundreds of times H^); false when the scheme has no such key. Keepaway reads the same key
-    its own way (``keepaway_sarsa.fusion_scaling``)."""
-    if "normalise" not in cfg.fusion or OmegaConf.select(cfg, "fusion.normalise") is None:
-        return "normalise" in cfg.fusion
-    return require_bool(cfg, "fusion.normalise")
-
-
-def make_trainer(cfg: DictConfig, log: FeedbackLog | None):
-    """The simulated trainer (or replay) of ``trainer``, logging every event it gives to ``log``."""
-    from hfrl_torch.trainers import HumanLikeTiming, OracleTrainer, ReplayTrainer, ValueProxyTrainer
-
-    name = require_choice(cfg, "trainer.name", TRAINERS)
-    if name == "none":
+def make_trainer(cfg: DictConfig, log: FeedbackLog | None) -> Trainer | None:
+    """The simulated Tetris trainer (or replay) of ``trainer``, logging every event it gives to ``log``."""
+    t = cfg.trainer
+    if t.name == "none":
         return None
-    reaction = require_float(cfg, "trainer.reaction", 1e-6)
-    if OmegaConf.select(cfg, "trainer.reference") not in (None, "dellacherie"):
-        raise ConfigError(
-            f"trainer.reference={cfg.trainer.reference!r} is invalid for Tetris; allowed: null "
-            "(Dellacherie's weights; learned references are a keepaway option)"
+    if t.name == "oracle":
+        base: Trainer = OracleTrainer(
+            frequency=t.frequency, consistency=t.consistency, seed=int(cfg.seed) * 2 + 1, reaction=t.reaction
         )
-    if name == "oracle":
-        base = OracleTrainer(
-            frequency=require_float(cfg, "trainer.frequency", 0.0, 1.0),
-            consistency=require_float(cfg, "trainer.consistency", 0.0, 1.0),
-            seed=int(cfg.seed) * 2 + 1,
-            reaction=reaction,
-        )
-    elif name == "value_proxy":
-        base = ValueProxyTrainer(
-            mode=require_choice(cfg, "trainer.mode", ("sign", "scaled")),
-            scale=require_float(cfg, "trainer.scale", 1e-12),
-            reaction=reaction,
-        )
+    elif t.name == "value_proxy":
+        base = ValueProxyTrainer(mode=t.mode, scale=t.scale, reaction=t.reaction)
     else:
-        path = OmegaConf.select(cfg, "trainer.log")
-        if not path:
-            raise ConfigError("trainer=replay needs trainer.log=<feedback log file>")
-        base = ReplayTrainer.from_log(path, reaction=reaction)
-    if not require_bool(cfg, "trainer.timing.enabled"):
+        base = ReplayTrainer.from_log(t.log, reaction=t.reaction)
+    timing = t.timing
+    if not timing.enabled:
         base.log = log
         return base
-    fatigue = OmegaConf.select(cfg, "trainer.timing.fatigue_tau")
-    tail = OmegaConf.select(cfg, "trainer.timing.tail_lines")
     return HumanLikeTiming(
         base,
-        delay=GammaDelay(
-            require_float(cfg, "trainer.timing.delay_shape", 1e-6),
-            require_float(cfg, "trainer.timing.delay_scale", 1e-6),
-        ),
-        fatigue_tau=None if fatigue is None else require_float(cfg, "trainer.timing.fatigue_tau", 1e-6),
-        positive_bias=require_float(cfg, "trainer.timing.positive_bias", 0.0, 1.0),
-        absence=require_float(cfg, "trainer.timing.absence", 0.0, 1.0),
-        tail_lines=None if tail is None else require_float(cfg, "trainer.timing.tail_lines", 1e-6),
+        delay=GammaDelay(timing.delay_shape, timing.delay_scale),
+        fatigue_tau=timing.fatigue_tau,
+        positive_bias=timing.positive_bias,
+        absence=timing.absence,
+        tail_lines=timing.tail_lines,
         seed=int(cfg.seed) * 2 + 2,
         log=log,
     )
 
 
-def check_run(cfg: DictConfig) -> None:
-    """Check the top-level and the not-yet-implemented groups."""
-    require_int(cfg, "seed", 0, 2**62)
-    require_choice(cfg, "agent.name", AGENTS)
-    require_choice(cfg, "fusion.name", FUSIONS)
-    require_choice(cfg, "trainer.name", TRAINERS)
-    require_choice(cfg, "logger.backend", BACKENDS)
-    make_device(cfg)
+def make_reference_keepers(
+    cfg: DictConfig, config: KeepawayConfig
+) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None:
+    """The keepaway oracle's reference: None (the hand-coded keepers) or a learned checkpoint's greedy keepers
+    as ``(obs, keeper) -> actions`` (field f is judged against the checkpoint's team f % its teams)."""
+    reference = OmegaConf.select(cfg, "trainer.reference")
+    if reference in (None, "hand"):
+        return None
+    choose, _ = load_keeper_policy(
+        load_checkpoint(str(reference), domain="keepaway"),
+        "cpu",
+        torch.Generator().manual_seed(int(cfg.seed) + 7),
+    )
+
+    def reference_actions(obs: torch.Tensor, keeper: torch.Tensor) -> torch.Tensor:
+        return choose(obs, torch.ones(obs.shape[0], config.num_actions, dtype=torch.bool), keeper)
+
+    return reference_actions
 
 
-def make_run_logger(cfg: DictConfig, log_dir: str, purge_step: int | None) -> Logger:
-    """The logger of ``logger.backend`` writing under ``log_dir``."""
-    return make_logger(cfg.logger.backend, log_dir, purge_step=purge_step)
+def make_keeper_trainer(
+    cfg: DictConfig,
+    config: KeepawayConfig,
+    fields: int,
+    log: FeedbackLog | None,
+    session: TeachingSession | None,
+) -> KeepawayOracle | KeepawayReplay | BrowserKeeperTrainer:
+    """Who judges the keepers: the simulated oracle, a replayed log, or the person on the page of ``session``."""
+    t = cfg.trainer
+    if t.name == "interactive":
+        if session is None:
+            raise ValueError("trainer=interactive needs the page's session")
+        return BrowserKeeperTrainer(session, fields, log)
+    if t.name == "replay":
+        return KeepawayReplay.from_log(str(t.log), fields, log)
+    timing = t.timing
+    on = bool(timing.enabled)
+    return KeepawayOracle(
+        config.keepers,
+        config.takers,
+        frequency=t.frequency,
+        consistency=t.consistency,
+        delay=GammaDelay(timing.delay_shape, timing.delay_scale) if on else float(t.reaction),
+        seed=int(cfg.seed) * 2 + 1,
+        log=log,
+        fatigue_tau=timing.fatigue_tau if on else None,
+        positive_bias=float(timing.positive_bias) if on else 0.0,
+        absence=float(timing.absence) if on else 0.0,
+        reference=make_reference_keepers(cfg, config),
+    )
 
 
-def validate_train_config(cfg: DictConfig) -> None:
-    """Check every section ``train.py`` uses, before any work or output."""
-    domain = require_choice(cfg, "domain.name", DOMAINS)
-    check_run(cfg)
-    if domain == "keepaway" or cfg.agent.name == "sarsa":
-        from hfrl_torch.experiment.keepaway_sarsa import check_keepaway_feedback, check_sarsa
+def make_live_teaching(cfg: DictConfig, log: FeedbackLog, view: str) -> LiveTeaching:
+    """The browser trainer's page server for ``view`` (tetris or keepaway), started."""
+    t = cfg.trainer
+    speed = DEFAULT_SPEED[view] if t.actions_per_s is None else float(t.actions_per_s)
+    session = TeachingSession(actions_per_s=speed)
+    server = TeachingServer(
+        session,
+        host=t.host,
+        port=int(t.port),
+        token=t.token,
+        keys={k: str(t["keys"][k]) for k in KEY_NAMES},
+        view=view,
+        max_message_bytes=int(t.max_message_bytes),
+        max_messages_per_s=float(t.max_messages_per_s),
+    )
+    return LiveTeaching.start(server, session, QueueTrainer(session.queue, log=log))
 
-        if domain != "keepaway" or cfg.agent.name != "sarsa":
-            raise ConfigError(
-                f"domain={domain} agent={cfg.agent.name}: keepaway is learned by agent=sarsa, "
-                "and agent=sarsa learns keepaway only (domain=keepaway agent=sarsa)"
-            )
-        require_int(cfg, "threads", 1, 256)
-        check_sarsa(cfg)
-        check_keepaway_feedback(cfg)
-        return
-    make_rules(cfg)
-    check_domain(cfg)
-    require_int(cfg, "threads", 1, 256)
-    agent = require_choice(cfg, "agent.name", AGENTS)
-    trainer = cfg.trainer.name
-    fusion = cfg.fusion.name
-    if agent == "cem":
-        make_cem_config(cfg)
-        make_weight_schedule(cfg)
-        fusion_normalises(cfg)
-        if fusion != "none" and trainer == "none":
-            raise ConfigError(
-                f"fusion={fusion!r} fuses the trainer's H^ with the environment; choose a trainer: "
-                "oracle, value_proxy, replay (or fusion=none)"
-            )
-        if trainer == "interactive":
-            from hfrl_torch.interactive.live import check_interactive
 
-            check_interactive(cfg)
-        if trainer != "none":
-            check_human(cfg)
-            require_int(cfg, "agent.watch_pieces", 1)
-            if cfg.domain.features != "bt":
-                raise ConfigError(
-                    f"domain.features={cfg.domain.features!r} with a trainer: CE + human feedback "
-                    "fuses over the bt features (a prefix of H^'s knox set); allowed: bt"
-                )
-    elif agent == "qlearning":
-        from hfrl_torch.experiment.tetris_qlearning import check_qlearning
+# ------------------------------------------------------------------------------ fusion
 
-        check_qlearning(cfg)
-    elif agent == "pg":
-        from hfrl_torch.experiment.tetris_pg import check_pg
 
-        check_pg(cfg)
-    else:
-        check_tamer(cfg)
-        if fusion != "none":
-            raise ConfigError(
-                f"fusion={fusion!r} with agent=tamer: TAMER acts on H^ alone; use fusion=none, "
-                "or agent=cem fusion=human_only to run H^ inside the combined learner"
-            )
-        if trainer == "none":
-            raise ConfigError(
-                "agent=tamer learns only from feedback; choose a trainer: oracle, value_proxy, replay"
-            )
-        if trainer == "interactive":
-            raise ConfigError(
-                "trainer=interactive teaches the combined learner: use agent=cem (fusion=linear by default), "
-                "which keeps learning from the game when you leave"
-            )
-    if trainer == "replay" and not OmegaConf.select(cfg, "trainer.log"):
-        raise ConfigError("trainer=replay needs trainer.log=<feedback log file>")
+def make_weight_schedule(cfg: DictConfig, learners: int = 1) -> WeightSchedule:
+    """The weight on H^ of ``fusion`` for each of ``learners``: the trust factor (eq. 4.4), annealed (Knox &
+    Stone) or fixed."""
+    f = cfg.fusion
+    if f.name in ("none", "human_only"):
+        return ConstantWeight([0.0] * learners)
+    if f.name == "annealed":
+        return AnnealedWeight([float(f.weight)] * learners, float(f.factor))
+    if f.weight == "trust":
+        return TrustWeight.from_initial(float(f.initial_trust), learners)
+    return ConstantWeight([float(f.weight)] * learners)
+
+
+def fusion_scaling(cfg: DictConfig) -> str:
+    """How R and H^ are put on one scale (``fusion.normalise``): true rescales both per decision, false fuses
+    the raw values; null is the domain's way (Tetris CE: per decision; keepaway: H^ times Q's running spread;
+    PG: raw, H^ biases the logits); spread is keepaway's."""
+    value = OmegaConf.select(cfg, "fusion.normalise") if "normalise" in cfg.fusion else False
+    if value is True:
+        return "decision"
+    if value is False:
+        return "none"
+    if cfg.domain.name == "keepaway":
+        return "spread"
+    return "none" if cfg.agent.name == "pg" else "decision"
+
+
+def make_fusion(cfg: DictConfig, learners: int = 1, seed: int = 0, option: str | None = None) -> Fusion:
+    """The one fusion component of a run: ``fusion``'s rules, weights and scale, for ``learners``
+    (``option``: a learner's own rule instead, e.g. TAMER's ``human_only``)."""
+    if option is not None and option != cfg.fusion.name:
+        return Fusion.from_option(option, ConstantWeight([0.0] * learners), seed=seed)
+    schedule = make_weight_schedule(cfg, learners)
+    return Fusion.from_option(cfg.fusion.name, schedule, scaling=fusion_scaling(cfg), seed=seed)
+
+
+# ---------------------------------------------------------------------------- keepaway
+
+
+def make_keepaway_config(cfg: DictConfig) -> KeepawayConfig:
+    """The simulator's ``KeepawayConfig`` from ``domain`` (every field it has that ``domain`` sets)."""
+    names = {f.name for f in dataclasses.fields(KeepawayConfig)}
+    values = {k: v for k, v in OmegaConf.to_container(cfg.domain, resolve=True).items() if k in names}
+    values["preset"] = str(values["preset"])
+    return KeepawayConfig(**values)
+
+
+def make_keepers(cfg: DictConfig, config: KeepawayConfig, device: torch.device) -> SarsaLambda:
+    """The Sarsa keepers of ``agent`` for ``agent.learners`` teams of ``agent.fields_per_learner`` fields."""
+    a = cfg.agent
+    return sarsa_keepers(
+        config,
+        a.learners,
+        fields_per_learner=a.fields_per_learner,
+        alpha=a.alpha,
+        epsilon=a.epsilon,
+        lambda_=a["lambda"],
+        gamma=a.gamma,
+        tilings=a.tilings,
+        size=2**a.table_bits,
+        min_trace=a.min_trace,
+        max_traces=a.max_traces,
+        share_weights=a.share_weights,
+        seed=int(cfg.seed),
+        device=device,
+    )

@@ -1,5 +1,6 @@
-"""Human feedback: events and their queue, the feedback log, credit assignment and the trust factor."""
+"""Human feedback: events and their queue, the channel into the tensordict, the feedback log and credit."""
 
+from hfrl_torch.feedback.channel import FeedbackChannel
 from hfrl_torch.feedback.credit import (
     CreditModel,
     DelayDensity,
@@ -16,12 +17,12 @@ from hfrl_torch.feedback.events import (
     FeedbackQueueFullError,
 )
 from hfrl_torch.feedback.log import FeedbackLog, FeedbackLogError, load_feedback_log
-from hfrl_torch.feedback.trust import IncrementalTrust, MatchRate, trust_from_policies
 
 __all__ = [
     "MAX_ABS_FEEDBACK",
     "CreditModel",
     "DelayDensity",
+    "FeedbackChannel",
     "FeedbackEvent",
     "FeedbackLog",
     "FeedbackLogError",
@@ -29,11 +30,8 @@ __all__ = [
     "FeedbackQueueClosedError",
     "FeedbackQueueFullError",
     "GammaDelay",
-    "IncrementalTrust",
-    "MatchRate",
     "PreviousStep",
     "UniformDelay",
     "credit_weights",
     "load_feedback_log",
-    "trust_from_policies",
 ]

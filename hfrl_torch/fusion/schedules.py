@@ -23,11 +23,11 @@ import torch
 from torch import Tensor
 
 from hfrl_torch.common.errors import CheckpointError
-from hfrl_torch.feedback.trust import IncrementalTrust, MatchRate
+from hfrl_torch.fusion.trust import IncrementalTrust
 
 __all__ = ["AnnealedWeight", "ConstantWeight", "TrustWeight", "WeightSchedule", "as_schedule"]
 
-MatchRateLike = float | MatchRate | None
+MatchRateLike = float | None
 
 
 def _is_number(x: object) -> bool:
@@ -54,7 +54,7 @@ def _weights(w: float | Sequence[float] | Tensor, what: str) -> Tensor:
 
 def _per_learner(values: Tensor | Sequence[Any] | float | None, learners: int, what: str) -> list[Any]:
     """One entry per learner from a scalar, a sequence or a 1-D tensor (NaN entries become None)."""
-    if values is None or _is_number(values) or isinstance(values, MatchRate):
+    if values is None or _is_number(values):
         return [values] * learners
     if isinstance(values, Tensor):
         if values.ndim == 0:
@@ -280,9 +280,8 @@ class TrustWeight(WeightSchedule):
     ) -> None:
         """Eq. 4.4 for each flagged learner: ``trust = (l1 * trust + l2 * m) / (l1 + l2)``.
 
-        ``match_rate`` entries may be numbers, None (no decision compared: trust kept), NaN in a tensor
-        (same as None) or :class:`MatchRate` counters (their ``value()`` is read; resetting them is the
-        caller's business).
+        ``match_rate`` entries may be numbers, None (no decision compared: trust kept) or NaN in a tensor
+        (same as None), e.g. :meth:`~hfrl_torch.fusion.trust.MatchCounter.rates`.
         """
         if performance is None:
             raise ValueError("TrustWeight.end_episode needs the episode's performance (lines, or hold time)")
@@ -290,7 +289,7 @@ class TrustWeight(WeightSchedule):
         perf = _per_learner(performance, self.learners, "performance")
         rates = _per_learner(match_rate, self.learners, "match_rate")
         for i in flags.nonzero().flatten().tolist():
-            m = rates[i].value() if isinstance(rates[i], MatchRate) else rates[i]
+            m = rates[i]
             self.trusts[i].update(perf[i], None if m is None else float(m))
         super().end_episode(ended=flags)
 

@@ -1,10 +1,11 @@
-"""Decision-level fusion: combine the environment-trained values R and the person's model H^ into one choice.
+"""The fusion schemes, written once: how R and H^ are combined, at which level, and the arithmetic.
 
 The thesis's rule is ``a = argmax_a f(R, H)`` (eq. 4.1), where R is the environment-trained estimate of every
-action (the CE value of a Tetris afterstate, a Sarsa Q in keepaway) and H^ the TAMER model of the person's
-reward. :func:`fuse_values` is ``f``; :class:`FusedActionSelector` takes the argmax (or, for control
-sharing, picks whose argmax to follow). Reward-level fusion, which changes the reward the learner sees,
-lives in :class:`hfrl_torch.fusion.transform.FeedbackFusion`.
+action (the CE value of a Tetris afterstate, a Sarsa Q in keepaway, PG's logits) and H^ the TAMER model of the
+person's reward. :func:`fuse_values` is ``f``. Each option of the ``fusion`` config group (:data:`OPTIONS`)
+says which rule it applies at the decision (the values the action is chosen by) and which at the reward (what
+the learner is trained on); :class:`~hfrl_torch.fusion.fusion.Fusion` applies them, and
+:data:`COMPILED_RULES` gives the codes of the same rules to the compiled Tetris games.
 
 Knox & Stone, "Combining Manual Feedback with Subsequent MDP Reward Signals for Reinforcement Learning"
 (AAMAS 2010) and "Reinforcement Learning from Simultaneous Human and MDP Reward" (AAMAS 2012) name the
@@ -14,23 +15,21 @@ TAMER+RL techniques offered here: reward shaping, Q augmentation, action biasing
 from __future__ import annotations
 
 import numbers
-from collections.abc import Sequence
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import torch
-from torch import Tensor, nn
-
-from hfrl_torch.fusion.schedules import WeightSchedule, as_schedule
-from hfrl_torch.models.linear import greedy_placement
+from torch import Tensor
 
 __all__ = [
+    "COMPILED_RULES",
     "DECISION_SCHEMES",
     "FUSIONS",
+    "OPTIONS",
     "REWARD_SCHEMES",
     "SCHEMES",
     "TARGET_SCHEMES",
     "VALUE_SCHEMES",
-    "FusedActionSelector",
+    "Option",
     "Scheme",
     "fuse_values",
     "rescale_range",
@@ -39,11 +38,11 @@ __all__ = [
 
 
 class Scheme(NamedTuple):
-    """A fusion scheme's name and the levels it acts at.
+    """A fusion rule's name and the levels it can act at.
 
-    ``decision``: how an action is chosen from R and H^ (:class:`FusedActionSelector`); ``reward``: the
-    reward the learner is trained on (``FeedbackFusion``); ``target``: the value inside the learner's update
-    target (``max_a' fuse_values(Q(s'), H^(s'), "q_augmentation", beta)``, for an agent to use).
+    ``decision``: the values an action is chosen by; ``reward``: the reward the learner is trained on
+    (``FeedbackFusion``); ``target``: the value inside the learner's update target
+    (``max_a' fuse_values(Q(s'), H^(s'), "q_augmentation", beta)``, for an agent to use).
     """
 
     name: str
@@ -61,23 +60,42 @@ SCHEMES: list[Scheme] = [
     Scheme("reward_shaping", ("reward",), "R' = R + beta H (Knox & Stone)"),
     Scheme("q_augmentation", ("target",), "Q + beta H in the update target (Knox & Stone)"),
 ]
-
-# the options of the ``fusion`` config group (``annealed`` is the linear rule with an annealed weight)
-FUSIONS: tuple[str, ...] = (
-    "none",
-    "human_only",
-    "linear",
-    "exponential",
-    "annealed",
-    "action_biasing",
-    "control_sharing",
-    "reward_shaping",
-)
 DECISION_SCHEMES: tuple[str, ...] = tuple(s.name for s in SCHEMES if "decision" in s.levels)
 REWARD_SCHEMES: tuple[str, ...] = tuple(s.name for s in SCHEMES if "reward" in s.levels)
 TARGET_SCHEMES: tuple[str, ...] = tuple(s.name for s in SCHEMES if "target" in s.levels)
 VALUE_SCHEMES: tuple[str, ...] = tuple(s.name for s in SCHEMES if s.name != "control_sharing")
 _ADDITIVE = ("linear", "action_biasing", "reward_shaping", "q_augmentation")
+
+
+class Option(NamedTuple):
+    """An option of the ``fusion`` config group: the rule at the decision and the rule at the reward."""
+
+    decision: str
+    reward: str
+
+
+# the options of the ``fusion`` config group; ``annealed`` is the linear rule with Knox & Stone's annealed
+# weight, ``action_biasing`` the linear sum used at selection only (the learner keeps its own Q)
+OPTIONS: dict[str, Option] = {
+    "none": Option("none", "none"),
+    "human_only": Option("human_only", "none"),
+    "linear": Option("linear", "none"),
+    "exponential": Option("exponential", "none"),
+    "annealed": Option("linear", "none"),
+    "action_biasing": Option("linear", "none"),
+    "control_sharing": Option("control_sharing", "none"),
+    "reward_shaping": Option("none", "reward_shaping"),
+}
+FUSIONS: tuple[str, ...] = tuple(OPTIONS)
+
+# codes of the decision rules inside compiled code (``fusion.compiled``)
+COMPILED_RULES: dict[str, int] = {
+    "none": 0,  # argmax R
+    "human_only": 1,  # argmax H^
+    "linear": 2,  # argmax R + w H^ (and the other additive rules)
+    "exponential": 3,  # argmax R (1 + sign(H^) |H^|^w)
+    "control_sharing": 4,  # argmax H^ with probability min(w, 1), else argmax R
+}
 
 
 def signed_power(h: Tensor, w: Tensor) -> Tensor:
@@ -131,13 +149,13 @@ def fuse_values(
           is ``1 + sign(H^)``: 2 for liked, 1 for neutral, 0 for disliked actions. For negative-valued
           estimates (CE afterstate values usually are) prefer ``linear``, or shift R to be >= 0.
 
-        ``control_sharing`` is a selection rule, not a value: use :class:`FusedActionSelector`.
+        ``control_sharing`` is a selection rule, not a value: :class:`~hfrl_torch.fusion.fusion.Fusion` applies it.
     :param weight: ``w`` / ``beta`` >= 0: a number, or a tensor of shape ``[]`` or ``values.shape[:-1]``
         (one per board / learner).
     """
     if scheme not in VALUE_SCHEMES:
         hint = (
-            "; control_sharing chooses actions: use FusedActionSelector"
+            "; control_sharing chooses whose values to follow: use Fusion"
             if scheme == "control_sharing"
             else ""
         )
@@ -180,106 +198,3 @@ def rescale_range(values: Tensor, mask: Tensor, terminal: Tensor | None = None) 
     span = hi - lo
     ok = span > 0
     return torch.where(ok, (v - lo) / torch.where(ok, span, 1.0), 0.0)
-
-
-class FusedActionSelector(nn.Module):
-    """Choose one action per board from R and H^ under a decision-level scheme (thesis eq. 4.1).
-
-    Value schemes (``none``, ``human_only``, ``linear``, ``exponential``, ``action_biasing``) take
-    ``greedy_placement(fuse_values(R, H^))``: the best valid action, the first on ties, a game-ending one only
-    when every valid action ends the game. ``control_sharing`` (Knox & Stone 2010) follows, on each board
-    independently, ``argmax H^`` with probability ``min(beta, 1)`` and ``argmax R`` otherwise (each argmax
-    by the same greedy rule). It draws one uniform number per board on every call, whatever beta is, from
-    its own generator, so the choices are a function of the seed and the call sequence.
-
-    :param scheme: one of ``DECISION_SCHEMES``.
-    :param weight: ``w`` / ``beta``: a number, one number per board, or a :class:`WeightSchedule`.
-    :param generator: the random source of control sharing (CPU); None: a fresh one seeded with 0.
-    :param normalise: rescale R and H^ to [0, 1] over each board's choosable actions before fusing them
-        (:func:`rescale_range`; ``linear``, ``exponential`` and ``action_biasing``).
-
-    After each call, ``last_followed_human`` (bool, one per board) says which boards followed H^'s argmax
-    (control sharing), or is None for the other schemes.
-    """
-
-    def __init__(
-        self,
-        scheme: str,
-        weight: float | Sequence[float] | Tensor | WeightSchedule = 1.0,
-        generator: torch.Generator | None = None,
-        normalise: bool = False,
-    ) -> None:
-        super().__init__()
-        if scheme not in DECISION_SCHEMES:
-            raise ValueError(
-                f"FusedActionSelector scheme={scheme!r} is invalid; allowed: {', '.join(DECISION_SCHEMES)}"
-            )
-        self.scheme = scheme
-        self.schedule = as_schedule(weight)
-        self.generator = generator if generator is not None else torch.Generator().manual_seed(0)
-        self.normalise = normalise
-        self.last_followed_human: Tensor | None = None
-
-    def weight(self, episode: int | Tensor | None = None) -> Tensor:
-        """The weight at ``episode`` (None: the schedule's own episode count)."""
-        return self.schedule.value(episode)
-
-    def forward(
-        self,
-        env_values: Tensor,
-        human_values: Tensor,
-        mask: Tensor | None = None,
-        terminal: Tensor | None = None,
-        episode: int | Tensor | None = None,
-    ) -> Tensor:
-        """The chosen action index per board, ``[B]`` (int64).
-
-        :param env_values: R, ``[B, A]``.
-        :param human_values: H^, ``[B, A]``.
-        :param mask: bool ``[B, A]``, the valid actions (None: all).
-        :param terminal: bool ``[B, A]``, actions that end the game (avoided unless all valid ones do).
-        :param episode: each board's episode index for the weight schedule (None: its own count).
-        """
-        if env_values.shape != human_values.shape:
-            raise ValueError(
-                f"env_values and human_values differ in shape: {tuple(env_values.shape)} and "
-                f"{tuple(human_values.shape)}"
-            )
-        if mask is None:
-            mask = torch.ones(env_values.shape, dtype=torch.bool, device=env_values.device)
-        w = self.weight(episode)
-        if self.scheme != "control_sharing":
-            self.last_followed_human = None
-            r, h = env_values, human_values
-            if self.normalise and self.scheme not in ("none", "human_only"):
-                r, h = rescale_range(r, mask, terminal), rescale_range(h, mask, terminal)
-            return greedy_placement(fuse_values(r, h, self.scheme, w), mask, terminal)
-        by_env = greedy_placement(env_values, mask, terminal)
-        by_human = greedy_placement(human_values, mask, terminal)
-        u = torch.rand(
-            by_env.shape, generator=self.generator, dtype=torch.float64, device=self.generator.device
-        )
-        p = w.to(torch.float64).clamp(max=1.0)
-        try:
-            follow = (u < p.to(u.device)).to(by_env.device)
-        except RuntimeError:
-            raise ValueError(
-                f"control_sharing weight of shape {tuple(p.shape)} does not fit {by_env.numel()} boards"
-            ) from None
-        if follow.shape != by_env.shape:
-            raise ValueError(
-                f"control_sharing weight of shape {tuple(p.shape)} does not fit boards {tuple(by_env.shape)}"
-            )
-        self.last_followed_human = follow
-        return torch.where(follow, by_human, by_env)
-
-    def get_extra_state(self) -> dict[str, Any]:
-        """The schedule's state and the generator's, so a resumed run draws the same numbers."""
-        return {"schedule": self.schedule.state_dict(), "generator": self.generator.get_state()}
-
-    def set_extra_state(self, state: dict[str, Any]) -> None:
-        self.schedule.load_state_dict(state["schedule"])
-        self.generator.set_state(state["generator"])
-
-    def extra_repr(self) -> str:
-        return f"scheme={self.scheme!r}, weight={self.schedule!r}, normalise={self.normalise}"

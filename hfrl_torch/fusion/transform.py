@@ -1,11 +1,14 @@
-"""Reward-level fusion: ``FeedbackFusion``, a TorchRL transform that trains the learner on a fused reward.
+"""The TorchRL faces of the one fusion component: ``FeedbackFusion`` on the env, ``FusionModule`` in the policy.
 
-Where :class:`~hfrl_torch.fusion.schemes.FusedActionSelector` changes which action is taken, this transform
-changes the reward the learner sees: Knox & Stone's reward shaping ``R' = R + beta H^`` (AAMAS 2010), the
-thesis's linear (eq. 4.2) and exponential (eq. 5.1) rules applied to the reward, or either signal alone. The
-environment's own reward is kept, unchanged, under ``env_reward`` for evaluation and logging.
+:class:`FeedbackFusion` is a transform that trains the learner on a fused reward: Knox & Stone's reward
+shaping ``R' = R + beta H^`` (AAMAS 2010), the thesis's linear (eq. 4.2) and exponential (eq. 5.1) rules
+applied to the reward, or either signal alone. The environment's own reward is kept, unchanged, under
+``env_reward`` for evaluation and logging. :class:`FusionModule` is the decision face: in a policy it reads
+R and H^ of every action and writes the fused values (and, with ``select="greedy"``, the action). Both hand
+the arithmetic to one :class:`~hfrl_torch.fusion.fusion.Fusion`, which may be shared with the training
+loop that updates its weights.
 
-Where H comes from:
+Where ``FeedbackFusion`` reads H:
 
 - ``estimate_key`` (default ``"human_reward_estimate"``): ``H^(s, a)`` of the action taken, ``[*B, 1]``,
   written by the policy into the tensordict next to the action, before ``env.step``. The transform
@@ -13,17 +16,25 @@ Where H comes from:
   0: a reset writes 0, and every step writes 0 into ``next`` so that a policy which does not write a fresh
   estimate fuses with 0 and never with the previous step's (the ``TensorDictPrimer`` pattern, with the
   primer's value reset at every step). An absent estimate reads as 0.
-- ``feedback_key`` (e.g. ``keys.FEEDBACK``): the person's reward for this step, ``[*B, 1]``, 0 where none
-  was given, written into ``next`` by the env or by an earlier transform of a ``Compose``. It must be
-  present when asked for.
+- ``feedback_key`` (e.g. ``keys.FEEDBACK``): the person's reward for this step, ``[*B, 1]`` or the
+  channel's ``[*B, K]`` slots (summed), 0 where none was given, written into ``next`` by the env or by an
+  earlier transform of a ``Compose`` (``trainers.transform.HumanFeedback``). It must be present when asked for.
 - both: the person's own reward where they gave one (nonzero), H^ elsewhere.
 
-Weights come from a :class:`~hfrl_torch.fusion.schedules.WeightSchedule` evaluated at each board's episode
-index. Episodes are delimited by done flags: a board's index advances by one after the step whose done flag
-is set (that step is fused with its own episode's weight), once per episode even if the board is stepped
-again before its reset; a reset clears the flag for the boards it restarts and touches no other board. The
-transform never calls ``schedule.end_episode``: a trust schedule is updated by the training loop, which
-knows the match rates.
+Several agents in one env (keepaway's keepers, an SMDP): with ``agent_key`` the estimate written with an
+action belongs to the agent named there, and a step's reward belongs to the agent that decides next (its
+reward since its own last decision), so it is fused with *that* agent's last estimate; at an episode's end
+``agent_rewards_key`` ``[*B, n]`` (every agent's last reward) is fused agent by agent. Rewards of boards where
+nobody decides (``deciding_key`` false) and nothing ends are left alone.
+
+Weights: with a shared :class:`~hfrl_torch.fusion.fusion.Fusion` they are its current ones (board b is
+learner b, or all boards learner 0), the loop that shares it ending its episodes. Otherwise they come from
+the transform's own :class:`~hfrl_torch.fusion.schedules.WeightSchedule` evaluated at each board's episode
+index, episodes being delimited by done flags: a board's index advances by one after the step
+whose done flag is set (that step is fused with its own episode's weight), once per episode even if the
+board is stepped again before its reset; a reset clears the flag for the boards it restarts and touches no
+other board. The transform never ends the schedule's episodes: a trust schedule is updated by the training
+loop, which knows the match rates (``Fusion.end_episode``).
 """
 
 from __future__ import annotations
@@ -33,6 +44,7 @@ from typing import Any
 
 import torch
 from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import Tensor
 from torchrl.data import Composite, TensorSpec, Unbounded
@@ -40,10 +52,12 @@ from torchrl.envs.transforms import Transform
 from torchrl.envs.transforms.utils import _get_reset
 
 from hfrl_torch import keys
+from hfrl_torch.fusion.fusion import Fusion, choosable
 from hfrl_torch.fusion.schedules import WeightSchedule, as_schedule
-from hfrl_torch.fusion.schemes import REWARD_SCHEMES, fuse_values
+from hfrl_torch.fusion.schemes import REWARD_SCHEMES
+from hfrl_torch.models.linear import greedy_placement
 
-__all__ = ["HUMAN_REWARD_ESTIMATE", "FeedbackFusion"]
+__all__ = ["HUMAN_REWARD_ESTIMATE", "FeedbackFusion", "FusionModule"]
 
 HUMAN_REWARD_ESTIMATE = keys.HUMAN_REWARD_ESTIMATE
 
@@ -59,15 +73,20 @@ class FeedbackFusion(Transform):
     :func:`~hfrl_torch.fusion.schemes.fuse_values`), ``env_reward <- R``. The module docstring says where H is
     read and how episodes are counted.
 
-    :param scheme: ``none``, ``human_only``, ``linear``, ``exponential`` or ``reward_shaping``.
+    :param scheme: ``none``, ``human_only``, ``linear``, ``exponential`` or ``reward_shaping``; or a
+        :class:`Fusion` (its reward rule and weights, shared with whoever updates them).
     :param weight: ``w`` / ``beta``: a number, one number per board, or a :class:`WeightSchedule` (per board:
-        learners along the env's first batch dimension).
+        learners along the env's first batch dimension); ignored with a ``Fusion``.
     :param estimate_key: where the policy writes ``H^(s, a)`` (None: not used).
     :param feedback_key: where the person's reward for the step arrives in ``next`` (None: not used).
     :param reward_key: the env reward, replaced by the fused one.
     :param env_reward_key: where the env reward is kept.
     :param done_key: the done flag that ends an episode.
     :param reset_key: the partial-reset flag.
+    :param agent_key: the root entry naming the agent that acts (several agents per board; None: one).
+    :param agents: n, the agents per board (with ``agent_key``).
+    :param deciding_key: the entry saying which boards' agent decides (with ``agent_key``; None: all).
+    :param agent_rewards_key: every agent's reward at an episode's end, ``[*B, n]`` (with ``agent_key``).
 
     Offline (``transform(rollout)``), the transform re-fuses a stored trajectory ``[*B, T]`` (time last, as
     ``env.rollout`` and collectors lay it out): R from ``("next", env_reward)`` if present, else
@@ -84,7 +103,7 @@ class FeedbackFusion(Transform):
 
     def __init__(
         self,
-        scheme: str = "linear",
+        scheme: str | Fusion = "linear",
         weight: float | Sequence[float] | Tensor | WeightSchedule = 1.0,
         *,
         estimate_key: NestedKey | None = HUMAN_REWARD_ESTIMATE,
@@ -93,22 +112,38 @@ class FeedbackFusion(Transform):
         env_reward_key: NestedKey = keys.ENV_REWARD,
         done_key: NestedKey = keys.DONE,
         reset_key: NestedKey = keys.RESET,
+        agent_key: NestedKey | None = None,
+        agents: int = 1,
+        deciding_key: NestedKey | None = None,
+        agent_rewards_key: NestedKey | None = None,
     ) -> None:
-        if scheme not in REWARD_SCHEMES:
+        if isinstance(scheme, Fusion):
+            fusion = scheme
+        elif scheme not in REWARD_SCHEMES:
             hint = (
-                "; action_biasing and control_sharing act at selection: use FusedActionSelector"
+                "; action_biasing and control_sharing act at selection: use FusionModule"
                 if scheme in ("action_biasing", "control_sharing")
                 else ""
             )
             raise ValueError(
                 f"FeedbackFusion scheme={scheme!r} is invalid; allowed: {', '.join(REWARD_SCHEMES)}{hint}"
             )
+        else:
+            fusion = Fusion("none", scheme, as_schedule(weight))
+        self._shared = isinstance(scheme, Fusion)  # its weights are the loop's; else counted here
         if estimate_key is None and feedback_key is None:
             raise ValueError("FeedbackFusion needs estimate_key, feedback_key or both: where to read H from")
+        if agent_key is not None and (agents < 1 or estimate_key is None):
+            raise ValueError("FeedbackFusion with agent_key needs agents >= 1 and an estimate_key")
         in_keys = [reward_key, *(k for k in (estimate_key, feedback_key) if k is not None)]
-        super().__init__(in_keys=in_keys, out_keys=[reward_key, env_reward_key])
-        self.scheme = scheme
-        self.schedule = as_schedule(weight)
+        out_keys = [reward_key, env_reward_key, *([agent_rewards_key] if agent_rewards_key else [])]
+        super().__init__(in_keys=in_keys, out_keys=out_keys)
+        self.fusion = fusion
+        self.scheme = fusion.reward_rule
+        self.agent_key, self.agents = agent_key, int(agents)
+        self.deciding_key, self.agent_rewards_key = deciding_key, agent_rewards_key
+        self._pending: Tensor | None = None  # [*B, n] each agent's last estimate (several agents)
+        self._last_agent: Tensor | None = None  # [*B] the agent that decided last
         self.estimate_key = estimate_key
         self.feedback_key = feedback_key
         self.reward_key = reward_key
@@ -117,6 +152,11 @@ class FeedbackFusion(Transform):
         self.reset_key = reset_key
         self._episodes: Tensor | None = None
         self._finished: Tensor | None = None
+
+    @property
+    def schedule(self) -> WeightSchedule:
+        """The weights' schedule (the fusion's)."""
+        return self.fusion.schedule
 
     @property
     def episodes(self) -> Tensor | None:
@@ -157,6 +197,8 @@ class FeedbackFusion(Transform):
     def _like(value: Tensor | None, reward: Tensor, key: NestedKey | None) -> Tensor | None:
         if value is None:
             return None
+        if value.ndim == reward.ndim and value.shape[:-1] == reward.shape[:-1] and value.shape[-1] > 1:
+            value = value.sum(-1, keepdim=True)  # the channel's K slots of one step (0 where empty)
         if value.shape != reward.shape:
             if value.numel() != reward.numel():
                 raise ValueError(
@@ -175,27 +217,83 @@ class FeedbackFusion(Transform):
         return done.reshape(*batch, -1).any(-1) if done.ndim > len(batch) else done.reshape(batch)
 
     def _fuse(self, reward: Tensor, human: Tensor, episodes: Tensor) -> Tensor:
-        fused = fuse_values(reward, human, self.scheme, self.schedule.value(episodes))
-        return fused.to(reward.dtype if self.scheme == "none" else _float_dtype(reward.dtype))
+        if self.scheme == "none":
+            return reward
+        if self._shared:  # the loop that shares the fusion ends its episodes: its current weights
+            rows = episodes.reshape(-1).shape[0] if episodes.ndim else 1
+            learners = self.fusion.learners
+            w = self.fusion.weight(
+                torch.arange(rows) % learners if learners > 1 else torch.zeros(rows, dtype=torch.int64)
+            )
+            w = w.reshape(episodes.shape)
+        else:
+            w = self.fusion.weight(episodes=episodes)
+        fused = self.fusion.reward(reward, human, w)
+        return fused.to(_float_dtype(reward.dtype))
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         reward = next_tensordict.get(self.reward_key)
-        human = self._human(tensordict, next_tensordict, reward)
+        human = self._human(tensordict, next_tensordict, reward) if self.agent_key is None else None
         episodes = self._counters(next_tensordict.batch_size, reward.device)
-        next_tensordict.set(self.reward_key, self._fuse(reward, human, episodes))
+        done = self._done(next_tensordict).to(episodes.device)
+        if human is not None:
+            fused = self._fuse(reward, human, episodes)
+        else:
+            fused = self._fuse_agents(tensordict, next_tensordict, reward, episodes, done)
+        next_tensordict.set(self.reward_key, fused)
         next_tensordict.set(self.env_reward_key, reward)
         if self.estimate_key is not None:
             next_tensordict.set(self.estimate_key, torch.zeros_like(reward, dtype=_float_dtype(reward.dtype)))
-        done = self._done(next_tensordict).to(episodes.device)
         self._episodes = episodes + (done & ~self._finished).to(torch.int64)
         self._finished = self._finished | done
         return next_tensordict
+
+    def _fuse_agents(
+        self, root: TensorDictBase, nxt: TensorDictBase, reward: Tensor, episodes: Tensor, done: Tensor
+    ) -> Tensor:
+        """Several agents per board: each reward is fused with the last estimate of the agent it is due to."""
+        batch = nxt.batch_size
+        pending, last = self._agent_state(batch, reward.device)
+        estimate = self._like(root.get(self.estimate_key, None), reward, self.estimate_key)
+        acted = self._deciding(root, batch)
+        agent = root.get(self.agent_key).reshape(batch).to(torch.int64)
+        if estimate is not None:
+            at = torch.nn.functional.one_hot(agent, self.agents).to(torch.bool) & acted.unsqueeze(-1)
+            pending = torch.where(at, estimate.reshape(*batch, 1).to(pending.dtype), pending)
+        last = torch.where(acted, agent, last)
+        due_agent = torch.where(done, last, nxt.get(self.agent_key).reshape(batch).to(torch.int64))
+        due = done | self._deciding(nxt, batch)
+        human = pending.gather(-1, due_agent.unsqueeze(-1)).reshape(reward.shape)
+        fused = torch.where(due.reshape(*batch, 1), self._fuse(reward, human, episodes), reward)
+        if self.agent_rewards_key is not None and bool(done.any()):
+            ends = nxt.get(self.agent_rewards_key)
+            fused_ends = self._fuse(ends, pending.to(ends.device), episodes).to(ends.dtype)
+            nxt.set(self.agent_rewards_key, torch.where(done.unsqueeze(-1), fused_ends, ends))
+        self._pending = torch.where(done.unsqueeze(-1), 0.0, pending)
+        self._last_agent = last
+        return fused.to(_float_dtype(reward.dtype))
+
+    def _deciding(self, td: TensorDictBase, batch: torch.Size) -> Tensor:
+        if self.deciding_key is None:
+            return torch.ones(batch, dtype=torch.bool, device=td.device)
+        return td.get(self.deciding_key).reshape(batch).to(torch.bool)
+
+    def _agent_state(self, batch: torch.Size, device: torch.device | None) -> tuple[Tensor, Tensor]:
+        if self._pending is None or self._pending.shape[:-1] != batch:
+            self._pending = torch.zeros(*batch, self.agents, dtype=torch.float64, device=device)
+            self._last_agent = torch.zeros(batch, dtype=torch.int64, device=device)
+        return self._pending, self._last_agent
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         batch = tensordict_reset.batch_size
         reset = _get_reset(self.reset_key, tensordict).reshape(batch)
         self._counters(batch, tensordict_reset.device)
         self._finished = self._finished & ~reset.to(self._finished.device)
+        if self.agent_key is not None:
+            pending, last = self._agent_state(batch, tensordict_reset.device)
+            r = reset.to(pending.device)
+            self._pending = torch.where(r.unsqueeze(-1), 0.0, pending)
+            self._last_agent = torch.where(r, 0, last)
         zero = torch.zeros(*batch, 1, dtype=self._reward_dtype(), device=tensordict_reset.device)
         tensordict_reset.set(self.env_reward_key, zero)
         if self.estimate_key is not None:
@@ -214,7 +312,9 @@ class FeedbackFusion(Transform):
         return self._reset(tensordict, tensordict_reset)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        """Fuse a stored trajectory ``[*B, T]`` after the fact (see the class docstring)."""
+        """Fuse a stored trajectory ``[*B, T]`` after the fact (see the class docstring; one agent per board)."""
+        if self.agent_key is not None:
+            raise ValueError("FeedbackFusion offline fuses one agent per board; it was built with agent_key")
         names = tensordict.names if tensordict.batch_dims else []
         if tensordict.batch_dims == 0 or (
             "time" in names and names.index("time") != tensordict.batch_dims - 1
@@ -273,10 +373,12 @@ class FeedbackFusion(Transform):
         return reward_spec
 
     def get_extra_state(self) -> dict[str, Any]:
-        """Episode counters and the schedule's state (plain numbers), for checkpoints."""
+        """Episode counters, the agents' pending estimates and the schedule's state, for checkpoints."""
         return {
             "episodes": None if self._episodes is None else self._episodes.tolist(),
             "finished": None if self._finished is None else self._finished.tolist(),
+            "pending": None if self._pending is None else self._pending.tolist(),
+            "last_agent": None if self._last_agent is None else self._last_agent.tolist(),
             "schedule": self.schedule.state_dict(),
         }
 
@@ -287,9 +389,52 @@ class FeedbackFusion(Transform):
         else:
             self._episodes = torch.tensor(state["episodes"], dtype=torch.int64)
             self._finished = torch.tensor(state["finished"], dtype=torch.bool)
+        pending, last = state.get("pending"), state.get("last_agent")
+        self._pending = None if pending is None else torch.tensor(pending, dtype=torch.float64)
+        self._last_agent = None if last is None else torch.tensor(last, dtype=torch.int64)
 
     def __repr__(self) -> str:
         return (
             f"{type(self).__name__}(scheme={self.scheme!r}, weight={self.schedule!r}, "
             f"estimate_key={self.estimate_key!r}, feedback_key={self.feedback_key!r})"
         )
+
+
+class FusionModule(TensorDictModuleBase):
+    """The decision face of a :class:`Fusion`, for a policy: R and H^ of every action in, fused values out.
+
+    Reads ``keys.ENV_VALUES``, ``keys.HUMAN_VALUES``, ``keys.ACTION_MASK`` (and, if present,
+    ``keys.AFTERSTATE_TERMINAL`` and ``keys.LEARNER``); writes ``keys.FUSED_VALUES`` and
+    ``keys.FUSION_WEIGHT``, and with ``select="greedy"`` also ``keys.ACTION``: the best choosable action (the
+    first on ties, a game-ending one only when all are). Without ``select`` the learner chooses from the
+    fused values itself (Sarsa's epsilon-greedy, PG's softmax).
+
+    :param fusion: the fusion (its rule, weights and match count, shared with the loop that updates them).
+    :param select: ``"greedy"`` or None.
+    :param count: count each decision in the fusion's match count (the trust factor's m).
+    :param weight_key: read each row's weight from this key instead of the fusion's schedule.
+
+    Example:
+        >>> policy = TensorDictSequential(env_values, human_values, FusionModule(fusion, select="greedy"))
+    """
+
+    def __init__(
+        self, fusion: Fusion, select: str | None = None, count: bool = True, weight_key: NestedKey | None = None
+    ) -> None:
+        super().__init__()
+        if select not in (None, "greedy"):
+            raise ValueError(f"FusionModule select={select!r} is invalid; allowed: None, greedy")
+        self.fusion, self.select, self.count, self.weight_key = fusion, select, bool(count), weight_key
+        self.in_keys = [keys.ENV_VALUES, keys.HUMAN_VALUES, keys.ACTION_MASK, *([weight_key] if weight_key else [])]
+        self.out_keys = [keys.FUSED_VALUES, keys.FUSION_WEIGHT, *([keys.ACTION] if select else [])]
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        weight = None if self.weight_key is None else tensordict.get(self.weight_key)
+        self.fusion.fuse(tensordict, count=self.count, weight=weight)
+        if self.select == "greedy":
+            values = tensordict.get(keys.FUSED_VALUES)
+            mask = tensordict.get(keys.ACTION_MASK, None)
+            mask = torch.ones(values.shape, dtype=torch.bool, device=values.device) if mask is None else mask
+            keep = choosable(mask.to(torch.bool), tensordict.get(keys.AFTERSTATE_TERMINAL, None))
+            tensordict.set(keys.ACTION, greedy_placement(values, keep))
+        return tensordict

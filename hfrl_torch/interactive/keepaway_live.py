@@ -1,8 +1,8 @@
 """``train.py domain=keepaway trainer=interactive``: a person teaches Sarsa keepers from the browser.
 
-One person watches one field: the run has one learner (``agent.learners=1``, which train.py implies for
-this command), and the page shows field 0. Three pieces join the live page to the keepers' loop
-(``run_sarsa_keepers`` with :class:`~hfrl_torch.agents.sarsa.fused_keepers.FusedKeepers`):
+One person watches one field: the run has one learner (``agent.learners=1``, the default with
+``trainer=interactive``), and the page shows field 0. Three pieces join the live page to the keepers' loop
+(``experiment/learners/keepaway_sarsa.py``):
 
 * :class:`KeepawayWatcher` shows every 100 ms simulator cycle of the field on the page, paced to the page's
   speed while the person teaches, and adds the hold times to the page's learning curve. It hooks the
@@ -35,7 +35,7 @@ from __future__ import annotations
 import math
 import sys
 from collections import deque
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -48,15 +48,13 @@ from tqdm import tqdm
 from hfrl_torch import keys
 from hfrl_torch.common.errors import CheckpointError
 from hfrl_torch.envs.keepaway.params import KeepawayConfig
+from hfrl_torch.envs.keepaway.records import KeepawayRecords
 from hfrl_torch.envs.keepaway.simulator import KeepawaySimulator, KeepawayState
 from hfrl_torch.feedback.events import FeedbackEvent, FeedbackQueue
 from hfrl_torch.feedback.log import FeedbackLog
 from hfrl_torch.interactive.session import SOURCE, TeachingSession
 
 if TYPE_CHECKING:
-    from hfrl_torch.agents.sarsa.fused_keepers import FusedKeepers
-    from hfrl_torch.envs.keepaway import KeepawayEnv
-    from hfrl_torch.experiment.keepaway_sarsa import KeepawayRecords
     from hfrl_torch.interactive.live import LiveTeaching
 
 CYCLES_PER_SECOND = 10
@@ -108,8 +106,8 @@ class BrowserKeeperTrainer:
 
     ``give`` returns no events: a person does not judge on a schedule. ``poll`` drains the page's queue,
     places each press on the field's simulated clock (see the module's docstring), logs it with that time
-    and returns one event per call; the others wait for the next calls (``FusedKeepers`` takes one event
-    per field per call, and a press credited in the past is due at once whenever it is delivered).
+    and returns one event per call; the others wait for the next calls (the loop takes one event
+    per call, and a press credited in the past is due at once whenever the channel delivers it).
 
     :param session: the page's session; its queue holds the presses (``human:browser``, stamped with the
         wall clock).
@@ -205,14 +203,14 @@ def _round(xy: list[float]) -> list[float]:
 class KeepawayWatcher:
     """Shows the watched field on the page, paces the loop while a person teaches, draws the curve.
 
-    Call :meth:`attach` with the env's simulator (frames and pacing, every cycle) and pass the watcher as
-    ``run_sarsa_keepers(..., watch=)`` (episode ends, every env step).
+    Call :meth:`attach` with the env's simulator (frames and pacing, every cycle) and call the watcher with
+    every env step's tensordict (episode ends).
 
     :param trainer: the browser trainer; the watcher uses its session (speed, pause, presence, frames,
         curve) and writes its timeline.
     :param records: the run's records (the field's clock, episode and decisions).
     :param config: the task (region, decision period).
-    :param human: the fusion, for the trust weight on the page (None: not shown).
+    :param weight: the watched learner's current weight on H^, for the page (None: not shown).
     :param curve_every: episodes per point of the page's learning curve (mean hold time).
     :param frame_s: wall seconds between frames while nobody teaches.
     """
@@ -222,14 +220,14 @@ class KeepawayWatcher:
         trainer: BrowserKeeperTrainer,
         records: KeepawayRecords,
         config: KeepawayConfig,
-        human: FusedKeepers | None = None,
+        weight: Callable[[], float] | None = None,
         curve_every: int = 10,
         frame_s: float = UNPACED_FRAME_S,
     ) -> None:
         if curve_every < 1:
             raise ValueError(f"KeepawayWatcher curve_every must be >= 1, got {curve_every!r}")
         self.session, self.trainer, self.records = trainer.session, trainer, records
-        self.config, self.human = config, human
+        self.config, self.weight = config, weight
         self.field = trainer.field
         self.curve_every, self.frame_s = curve_every, frame_s
         self.cycle_share = 1.0 / config.decision_period_cycles  # of one paced "action"
@@ -293,7 +291,7 @@ class KeepawayWatcher:
         dist = [math.dist(k, ball) for k in keepers]
         nearest = min(range(n), key=dist.__getitem__)
         holder = nearest if dist[nearest] <= c.physics.kickable_distance else -1
-        weight = None if self.human is None else float(self.human.schedule.value()[f])
+        weight = None if self.weight is None else float(self.weight())
         if not teaching:
             text = "you're away: the keepers learn on their own at full speed"
         elif self.session.paused:
@@ -319,8 +317,8 @@ class KeepawayWatcher:
         }
 
     def __call__(self, td: TensorDictBase) -> None:
-        """After an env step (``watch`` of ``run_sarsa_keepers``): the hold time of an episode that ended,
-        and a point of the curve every ``curve_every`` episodes."""
+        """After an env step: the hold time of an episode that ended, and a point of the curve every
+        ``curve_every`` episodes."""
         after = td["next"]
         f = self.field
         if not bool(after[keys.DONE].reshape(-1)[f]):
@@ -332,19 +330,6 @@ class KeepawayWatcher:
         if len(self.block) >= self.curve_every:
             self.session.add_point(int(self.records.episodes[f]) + 1, sum(self.block) / len(self.block))
             self.block.clear()
-
-
-def watch_field(
-    env: KeepawayEnv, records: KeepawayRecords, human: FusedKeepers, curve_every: int = 10
-) -> KeepawayWatcher:
-    """The watcher of a run taught through the browser (``human.trainer`` a :class:`BrowserKeeperTrainer`
-    with a session), attached to ``env``'s simulator."""
-    trainer = human.trainer
-    if not isinstance(trainer, BrowserKeeperTrainer):
-        raise TypeError(f"watch_field needs a BrowserKeeperTrainer, got {type(trainer).__name__}")
-    watcher = KeepawayWatcher(trainer, records, env.config, human, curve_every)
-    watcher.attach(env.sim)
-    return watcher
 
 
 def wait_for_teacher(cfg: DictConfig, teaching: LiveTeaching) -> None:

@@ -4,12 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from omegaconf import DictConfig, OmegaConf
-
 from hfrl_torch.common.errors import ConfigError
-from hfrl_torch.common.validation import require_float, require_int
-from hfrl_torch.feedback.log import FeedbackLog
-from hfrl_torch.interactive.messages import MAX_SPEED, MIN_SPEED
 from hfrl_torch.interactive.server import TeachingServer
 from hfrl_torch.interactive.session import TeachingSession
 from hfrl_torch.trainers.queue_trainer import QueueTrainer
@@ -28,6 +23,15 @@ class LiveTeaching:
     session: TeachingSession
     trainer: QueueTrainer
 
+    @classmethod
+    def start(cls, server: TeachingServer, session: TeachingSession, trainer: QueueTrainer) -> LiveTeaching:
+        """Start ``server``; raises ``ConfigError`` (one line) if it cannot serve where it was asked to."""
+        try:
+            server.start()
+        except OSError as e:
+            raise ConfigError(f"{e}; choose another trainer.port (0 picks a free one)") from None
+        return cls(server, session, trainer)
+
     @property
     def url(self) -> str:
         return self.server.url
@@ -36,50 +40,3 @@ class LiveTeaching:
         """Stop the server; the session's queue stops taking events."""
         self.server.stop()
         self.session.queue.close()
-
-
-def check_interactive(cfg: DictConfig) -> None:
-    """Check ``trainer`` for trainer=interactive."""
-    host = OmegaConf.select(cfg, "trainer.host")
-    if not isinstance(host, str) or not host:
-        raise ConfigError(f"trainer.host={host!r} is invalid: must be an address such as 127.0.0.1")
-    require_int(cfg, "trainer.port", 0, 65535)
-    if OmegaConf.select(cfg, "trainer.actions_per_s") is not None:
-        require_float(cfg, "trainer.actions_per_s", MIN_SPEED, MAX_SPEED)
-    require_float(cfg, "trainer.wait_for_page_s", 0.0)
-    require_int(cfg, "trainer.max_message_bytes", 64, 65536)
-    require_float(cfg, "trainer.max_messages_per_s", 1.0, 1000.0)
-    token = OmegaConf.select(cfg, "trainer.token")
-    if token is not None and (not isinstance(token, str) or len(token) < 8):
-        raise ConfigError("trainer.token is invalid: must be null (generated) or a string of 8+ characters")
-    keys = [OmegaConf.select(cfg, f"trainer.keys.{k}") for k in KEY_NAMES]
-    for name, key in zip(KEY_NAMES, keys, strict=True):
-        if not isinstance(key, str) or len(key) != 1:
-            raise ConfigError(f"trainer.keys.{name}={key!r} is invalid: must be one character")
-    if len(set(keys)) != len(keys):
-        raise ConfigError(
-            f"trainer.keys {dict(zip(KEY_NAMES, keys, strict=True))} must be four different keys"
-        )
-
-
-def start_live_teaching(cfg: DictConfig, log: FeedbackLog, view: str) -> LiveTeaching:
-    """Start the page's server for ``view`` (tetris or keepaway); raises ConfigError if it cannot serve."""
-    check_interactive(cfg)
-    t = cfg.trainer
-    speed = DEFAULT_SPEED[view] if t.actions_per_s is None else float(t.actions_per_s)
-    session = TeachingSession(actions_per_s=speed)
-    server = TeachingServer(
-        session,
-        host=t.host,
-        port=int(t.port),
-        token=t.token,
-        keys={k: str(t["keys"][k]) for k in KEY_NAMES},
-        view=view,
-        max_message_bytes=int(t.max_message_bytes),
-        max_messages_per_s=float(t.max_messages_per_s),
-    )
-    try:
-        server.start()
-    except OSError as e:
-        raise ConfigError(f"{e}; choose another trainer.port (0 picks a free one)") from None
-    return LiveTeaching(server, session, QueueTrainer(session.queue, log=log))

@@ -114,7 +114,7 @@ def test_reset_writes_zero_defaults():
 @pytest.mark.parametrize(
     ("kwargs", "match"),
     [
-        ({"scheme": "control_sharing"}, "FusedActionSelector"),
+        ({"scheme": "control_sharing"}, "FusionModule"),
         ({"scheme": "bogus"}, "allowed"),
         ({"scheme": "linear", "estimate_key": None}, "where to read H"),
     ],

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from hfrl_torch.common.errors import CheckpointError
-from hfrl_torch.feedback.trust import IncrementalTrust, MatchRate
+from hfrl_torch.fusion.trust import IncrementalTrust, MatchCounter
 from hfrl_torch.fusion import AnnealedWeight, ConstantWeight, TrustWeight, as_schedule
 
 
@@ -95,10 +95,9 @@ def test_trust_weight_follows_incremental_trust_by_hand():
 
 def test_trust_weight_batched_learners_update_independently():
     s = TrustWeight.from_initial([0.5, 0.2, 0.9], learners=3)
-    rates = [MatchRate() for _ in range(3)]
-    rates[0].update(torch.tensor([1, 2, 3, 4]), torch.tensor([1, 2, 0, 0]))  # 0.5
-    rates[1].update(torch.tensor([1]), torch.tensor([1]))  # 1.0
-    s.end_episode(torch.tensor([4.0, 2.0, 7.0]), rates, ended=torch.tensor([True, True, False]))
+    counts = MatchCounter(3)
+    counts.add(torch.tensor([0, 1]), torch.tensor([2, 1]), torch.tensor([4, 1]))  # 0.5, 1.0, none
+    s.end_episode(torch.tensor([4.0, 2.0, 7.0]), counts.rates(), ended=torch.tensor([True, True, False]))
     assert s.value().tolist() == pytest.approx([0.5, 0.6, 0.9], abs=1e-12)
     # NaN in a tensor of match rates means no decision compared
     s.end_episode([4.0, 6.0, 3.0], torch.tensor([0.0, math.nan, 0.3], dtype=torch.float64))

@@ -1,5 +1,6 @@
-"""Decision-level fusion: every scheme's values and choices on hand-made R and H^ (ties, masks, game-ending
-placements), control sharing's rate with a seeded generator, weights from schedules, the SCHEMES list."""
+"""Decision-level fusion through the one component: every scheme's values and choices on hand-made R and H^
+(ties, masks, game-ending placements), control sharing's rate with a seeded generator, weights from
+schedules, the options table and the SCHEMES list."""
 
 from __future__ import annotations
 
@@ -10,13 +11,20 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from tensordict import TensorDict
+
+from hfrl_torch import keys
 from hfrl_torch.fusion import (
     DECISION_SCHEMES,
+    FUSIONS,
+    OPTIONS,
     REWARD_SCHEMES,
     SCHEMES,
     AnnealedWeight,
     ConstantWeight,
-    FusedActionSelector,
+    Fusion,
+    FusionModule,
+    as_schedule,
     fuse_values,
     signed_power,
 )
@@ -24,6 +32,25 @@ from hfrl_torch.fusion import (
 # one board, four actions: R favours 2, H^ favours 3, and action 3 has R = 0
 R = torch.tensor([[2.0, 1.0, 4.0, 0.0]])
 H = torch.tensor([[1.0, 3.0, -0.5, 8.0]])
+
+
+def _decisions(r, h, mask=None, terminal=None) -> TensorDict:
+    td = {keys.ENV_VALUES: r, keys.HUMAN_VALUES: h}
+    if mask is not None:
+        td[keys.ACTION_MASK] = mask
+    if terminal is not None:
+        td[keys.AFTERSTATE_TERMINAL] = terminal
+    return TensorDict(td, batch_size=[r.shape[0]])
+
+
+def _fusion(scheme: str, weight=1.0, seed: int = 0, scaling: str = "none") -> Fusion:
+    return Fusion(scheme, "none", as_schedule(weight), seed=seed, scaling=scaling)
+
+
+def choose(scheme, r, h, mask=None, terminal=None, weight=1.0, fusion: Fusion | None = None) -> list[int]:
+    """The action of each board chosen through the fusion component's TorchRL face (greedy selection)."""
+    module = FusionModule(fusion if fusion is not None else _fusion(scheme, weight), select="greedy")
+    return module(_decisions(r, h, mask, terminal)).get(keys.ACTION).tolist()
 
 
 def test_schemes_list_names_every_scheme_with_its_levels():
@@ -49,6 +76,17 @@ def test_schemes_list_names_every_scheme_with_its_levels():
         "control_sharing",
     }
     assert set(REWARD_SCHEMES) == {"none", "human_only", "linear", "exponential", "reward_shaping"}
+
+
+def test_every_config_option_names_its_decision_and_reward_rules():
+    assert set(FUSIONS) == set(OPTIONS) == {
+        "none", "human_only", "linear", "exponential", "annealed", "action_biasing", "control_sharing",
+        "reward_shaping",
+    }
+    assert all(o.decision in DECISION_SCHEMES and o.reward in REWARD_SCHEMES for o in OPTIONS.values())
+    assert OPTIONS["reward_shaping"] == ("none", "reward_shaping")  # shaping acts on the reward only
+    assert OPTIONS["annealed"].decision == OPTIONS["action_biasing"].decision == "linear"
+    assert {o.reward for k, o in OPTIONS.items() if k != "reward_shaping"} == {"none"}
 
 
 @pytest.mark.parametrize(
@@ -110,7 +148,7 @@ def test_per_board_weights_apply_to_their_own_board():
     ("kwargs", "error", "match"),
     [
         ({"scheme": "bogus"}, ValueError, "allowed"),
-        ({"scheme": "control_sharing"}, ValueError, "FusedActionSelector"),
+        ({"scheme": "control_sharing"}, ValueError, "use Fusion"),
         ({"scheme": "linear", "weight": -1.0}, ValueError, ">= 0"),
         ({"scheme": "linear", "weight": math.inf}, ValueError, "finite"),
         ({"scheme": "linear", "weight": "1"}, TypeError, "number or a tensor"),
@@ -139,7 +177,7 @@ def test_linear_is_r_plus_w_h_and_exponential_at_one_is_r_times_one_plus_h(r, h,
     assert torch.allclose(fuse_values(rt, ht, "exponential", 1.0), rt * (1 + ht))
 
 
-# ---------------------------------------------------------------- the selector
+# ---------------------------------------------------------------- the choice
 
 
 @pytest.mark.parametrize(
@@ -157,46 +195,61 @@ def test_linear_is_r_plus_w_h_and_exponential_at_one_is_r_times_one_plus_h(r, h,
         ("control_sharing", 5.0, 3),  # min(beta, 1)
     ],
 )
-def test_selector_choice_by_hand(scheme, w, action):
-    sel = FusedActionSelector(scheme, weight=w)
-    assert sel(R, H).tolist() == [action]
+def test_choice_by_hand(scheme, w, action):
+    assert choose(scheme, R, H, weight=w) == [action]
 
 
-def test_selector_respects_masks_and_avoids_game_ending_placements():
+def test_choice_respects_masks_and_avoids_game_ending_placements():
     mask = torch.tensor([[False, True, True, True]])
     terminal = torch.tensor([[False, False, False, True]])
     # linear, w = 1: [3, 4, 3.5, 8]; 3 ends the game, 0 is masked: 1
-    assert FusedActionSelector("linear").forward(R, H, mask, terminal).tolist() == [1]
+    assert choose("linear", R, H, mask, terminal) == [1]
     # every valid placement ends the game: the best of them
-    assert FusedActionSelector("linear").forward(R, H, mask, torch.ones_like(mask)).tolist() == [3]
+    assert choose("linear", R, H, mask, torch.ones_like(mask)) == [3]
     # masked-out best: human_only falls back to H^'s best valid placement
-    assert FusedActionSelector("human_only").forward(R, H, mask & ~terminal).tolist() == [1]
+    assert choose("human_only", R, H, mask & ~terminal) == [1]
     # control sharing applies the same rule to whichever argmax it follows
-    assert FusedActionSelector("control_sharing", 1.0).forward(R, H, mask, terminal).tolist() == [1]
+    assert choose("control_sharing", R, H, mask, terminal, weight=1.0) == [1]
     mask_env = torch.tensor([[True, True, False, True]])
-    assert FusedActionSelector("control_sharing", 0.0).forward(R, H, mask_env, terminal).tolist() == [0]
+    assert choose("control_sharing", R, H, mask_env, terminal, weight=0.0) == [0]
 
 
-def test_selector_ties_take_the_first_index_on_every_board():
+def test_choice_ties_take_the_first_index_on_every_board():
     r = torch.tensor([[1.0, 1.0, 1.0], [0.0, 2.0, 2.0]])
     h = torch.zeros(2, 3)
     for scheme in ("none", "linear", "exponential", "action_biasing"):
-        assert FusedActionSelector(scheme).forward(r, h).tolist() == [0, 1]
+        assert choose(scheme, r, h) == [0, 1]
 
 
-def test_selector_rejects_reward_only_schemes():
+def test_fusion_rejects_unknown_rules_and_writes_the_weight_it_used():
     with pytest.raises(ValueError, match="allowed"):
-        FusedActionSelector("reward_shaping")
+        Fusion("reward_shaping", "none", as_schedule(1.0))
+    with pytest.raises(ValueError, match="allowed"):
+        Fusion.from_option("average", as_schedule(1.0))
+    td = _fusion("linear", 0.25).fuse(_decisions(R, H))
+    assert td[keys.FUSION_WEIGHT].tolist() == [0.25]
+    torch.testing.assert_close(td[keys.FUSED_VALUES], fuse_values(R, H, "linear", 0.25))
 
 
-def test_selector_weight_from_an_annealed_schedule():
+def test_weight_from_an_annealed_schedule_follows_the_fusions_episodes():
     # linear: [2 + w, 1 + 3w, 4 - 0.5w, 8w]; w = 1 at episode 0 picks 3, w = 1/16 at episode 4 picks 2
-    sel = FusedActionSelector("linear", AnnealedWeight(1.0, factor=0.5))
-    assert sel(R, H, episode=0).tolist() == [3]
-    assert sel(R, H, episode=4).tolist() == [2]
+    fusion = Fusion("linear", "none", AnnealedWeight(1.0, factor=0.5))
+    assert choose("linear", R, H, fusion=fusion) == [3]
     for _ in range(4):
-        sel.schedule.end_episode()
-    assert sel(R, H).tolist() == [2]
+        fusion.end_episode()
+    assert choose("linear", R, H, fusion=fusion) == [2]
+
+
+def test_weights_per_learner_and_from_a_key():
+    r = R.expand(3, 4)
+    h = H.expand(3, 4)
+    fusion = Fusion("linear", "none", ConstantWeight([1.0, 0.1, 1.0]))
+    assert choose("linear", r, h, fusion=fusion) == [3, 2, 3]  # row m is learner m
+    td = _decisions(r, h).set(keys.LEARNER, torch.tensor([1, 1, 0]))
+    assert FusionModule(fusion, select="greedy")(td)[keys.ACTION].tolist() == [2, 2, 3]
+    td = _decisions(r, h).set("my_weight", torch.tensor([0.1, 1.0, 0.1], dtype=torch.float64))
+    out = FusionModule(fusion, select="greedy", weight_key="my_weight")(td)
+    assert out[keys.ACTION].tolist() == [2, 3, 2]
 
 
 def test_control_sharing_rate_per_board_matches_min_beta_one():
@@ -210,28 +263,62 @@ def test_control_sharing_rate_per_board_matches_min_beta_one():
     b = n * len(betas)
     r = torch.tensor([[1.0, 0.0]]).expand(b, 2)
     h = torch.tensor([[0.0, 1.0]]).expand(b, 2)
-    sel = FusedActionSelector(
-        "control_sharing", ConstantWeight(betas.repeat(n)), torch.Generator().manual_seed(7)
-    )
-    followed = sel(r, h).reshape(n, len(betas)).to(torch.float64)
-    assert torch.equal(sel.last_followed_human.reshape(n, len(betas)).to(torch.float64), followed)
+    fusion = Fusion("control_sharing", "none", ConstantWeight(betas.repeat(n)), seed=7)
+    followed = torch.tensor(choose("control_sharing", r, h, fusion=fusion)).reshape(n, len(betas)).double()
+    assert fusion.followed_human == int(followed.sum())
     for p, rate in zip(betas.tolist(), followed.mean(0).tolist(), strict=True):
         assert abs(rate - p) <= 5 * math.sqrt(p * (1 - p) / n)
     # a second call draws fresh numbers: the choices are not a copy of the first call's
-    again = sel(r, h).reshape(n, len(betas)).to(torch.float64)
+    again = torch.tensor(choose("control_sharing", r, h, fusion=fusion)).reshape(n, len(betas)).double()
     assert not torch.equal(again, followed)
     assert (again.mean(0) - betas).abs().max() < 0.03
+    # in evaluation mode it follows H^ exactly where min(w, 1) >= 0.5, the likelier side of its coin
+    fusion.eval()
+    td = _decisions(r[:4], h[:4]).set(keys.LEARNER, torch.arange(4))
+    assert FusionModule(fusion, select="greedy")(td)[keys.ACTION].tolist() == [0, 0, 1, 1]
 
 
 def test_control_sharing_is_repeatable_with_the_same_seed_and_state():
     r = torch.tensor([[1.0, 0.0]]).expand(64, 2)
     h = torch.tensor([[0.0, 1.0]]).expand(64, 2)
-    a = FusedActionSelector("control_sharing", 0.5, torch.Generator().manual_seed(3))
-    b = FusedActionSelector("control_sharing", 0.5, torch.Generator().manual_seed(3))
-    first = [a(r, h) for _ in range(3)]
-    assert all(torch.equal(x, b(r, h)) for x in first)
+    a, b = _fusion("control_sharing", 0.5, seed=3), _fusion("control_sharing", 0.5, seed=3)
+    first = [choose("", r, h, fusion=a) for _ in range(3)]
+    assert all(x == choose("", r, h, fusion=b) for x in first)
     state = a.state_dict()
-    nxt = a(r, h)
-    c = FusedActionSelector("control_sharing", 0.5, torch.Generator().manual_seed(99))
+    nxt = choose("", r, h, fusion=a)
+    c = _fusion("control_sharing", 0.5, seed=99)
     c.load_state_dict(state)
-    assert torch.equal(c(r, h), nxt)
+    assert choose("", r, h, fusion=c) == nxt
+
+
+def test_scales_decision_and_spread():
+    r = torch.tensor([[1000.0, 990.0, 0.0]])  # R prefers action 0 by a little (on its scale)
+    h = torch.tensor([[-0.01, 0.01, 0.0]])  # H^ prefers action 1
+    assert choose("linear", r, h, weight=0.5) == [0]  # raw: H^ is a rounding error next to R
+    assert choose("linear", r, h, fusion=_fusion("linear", 0.5, scaling="decision")) == [1]
+    # spread: H^ times the learner's running mean of max R - min R (rate 0.01 from the floor of 1)
+    spread = _fusion("linear", 1.0, scaling="spread")
+    q, hh = torch.tensor([[10.0, 0.0]]), torch.tensor([[0.0, 1.0]])
+    td = spread.fuse(_decisions(q, hh))
+    assert spread.q_spread.tolist() == pytest.approx([0.99 * 1.0 + 0.01 * 10.0])
+    torch.testing.assert_close(td[keys.FUSED_VALUES], torch.tensor([[10.0, 1.09]], dtype=torch.float64))
+    # the exponential rule scales R by a factor of H^ alone: raw values under spread
+    expo = _fusion("exponential", 1.0, scaling="spread")
+    torch.testing.assert_close(expo.fuse(_decisions(q, hh))[keys.FUSED_VALUES], fuse_values(q, hh, "exponential", 1.0))
+
+
+def test_match_count_goes_through_the_fusion_and_feeds_the_trust():
+    from hfrl_torch.fusion import TrustWeight
+
+    fusion = Fusion.from_option("linear", TrustWeight.from_initial(0.5, learners=2))
+    r = torch.tensor([[1.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+    h = torch.tensor([[1.0, 0.0], [0.0, 1.0], [0.0, 0.0]])  # match, mismatch, H^ prefers nothing
+    fusion.fuse(_decisions(r, h).set(keys.LEARNER, torch.tensor([0, 1, 1])))
+    assert fusion.matches.matches.tolist() == [1, 0] and fusion.matches.compared.tolist() == [1, 1]
+    fusion.end_episode(performance=torch.tensor([4.0, 4.0]))
+    # first update: (trust + m) / 2 per learner
+    assert fusion.weight().tolist() == pytest.approx([0.75, 0.25])
+    assert fusion.matches.compared.tolist() == [0, 0]
+    fusion.eval()
+    fusion.fuse(_decisions(r, h).set(keys.LEARNER, torch.tensor([0, 1, 1])))
+    assert fusion.matches.compared.tolist() == [0, 0]  # evaluation counts nothing

@@ -1,10 +1,13 @@
-"""rescale_range and FusedActionSelector(normalise=True): R and H^ on a common [0, 1] scale."""
+"""rescale_range and the fusion's ``scaling="decision"``: R and H^ on a common [0, 1] scale."""
 
 from __future__ import annotations
 
 import torch
 
-from hfrl_torch.fusion.schemes import FusedActionSelector, rescale_range
+from tensordict import TensorDict
+
+from hfrl_torch import keys
+from hfrl_torch.fusion import Fusion, FusionModule, as_schedule, rescale_range
 
 
 def test_rescale_maps_the_choosable_range_to_unit_interval():
@@ -24,12 +27,15 @@ def test_rescale_ignores_game_ending_actions_unless_all_end_the_game():
     torch.testing.assert_close(out[1], torch.tensor([0.0, 0.5, 1.0], dtype=torch.float64))
 
 
+def _choose(weight: float, scaling: str, r: torch.Tensor, h: torch.Tensor) -> int:
+    fusion = Fusion("linear", "none", as_schedule(weight), scaling=scaling)
+    td = TensorDict({keys.ENV_VALUES: r, keys.HUMAN_VALUES: h}, batch_size=[1])
+    return int(FusionModule(fusion, select="greedy")(td)[keys.ACTION])
+
+
 def test_normalised_linear_weighs_h_against_r_whatever_their_scales():
     r = torch.tensor([[1000.0, 990.0, 0.0]])  # R prefers action 0 by a little (on its scale)
     h = torch.tensor([[-0.01, 0.01, 0.0]])  # H^ prefers action 1
-    mask = torch.ones(1, 3, dtype=torch.bool)
-    raw = FusedActionSelector("linear", 0.5)
-    scaled = FusedActionSelector("linear", 0.5, normalise=True)
-    assert int(raw(r, h, mask)) == 0  # raw: H^ is a rounding error next to R
-    assert int(scaled(r, h, mask)) == 1  # 0.99 + 0.5 * 1 > 1 + 0.5 * 0
-    assert int(FusedActionSelector("linear", 0.0, normalise=True)(r, h, mask)) == 0
+    assert _choose(0.5, "none", r, h) == 0  # raw: H^ is a rounding error next to R
+    assert _choose(0.5, "decision", r, h) == 1  # 0.99 + 0.5 * 1 > 1 + 0.5 * 0
+    assert _choose(0.0, "decision", r, h) == 0

@@ -9,6 +9,7 @@ from hfrl_torch.envs.tetris import TetrisRules
 from hfrl_torch.envs.tetris.pieces import PIECE_NAMES
 from hfrl_torch.envs.tetris.primitive import DROP, LEFT, RIGHT, PrimitiveTetris
 from hfrl_torch.envs.tetris.sequence import game_key, piece_at
+from hfrl_torch.feedback.channel import FeedbackChannel
 from hfrl_torch.feedback.events import FeedbackEvent
 
 
@@ -38,8 +39,9 @@ def test_feedback_credits_the_last_move_and_steers_the_next():
     assert action.tolist() == [LEFT, LEFT]  # w = 0: every move ties, the first wins
     game.step(action)
     ev = FeedbackEvent(time=0.5, value=-1.0, source="simulated:oracle")
-    agent.give_feedback([[ev], []])
-    assert agent.learn(now=1.0).tolist() == [1, 0]
+    channel = FeedbackChannel(2)
+    channel.put_events([[ev], []])
+    assert agent.learn(channel.deliver(1.0)).tolist() == [1, 0]
     assert torch.allclose(agent.model.weight[0], -0.1 * deltas[0, LEFT])
     assert torch.equal(agent.model.weight[1], torch.zeros_like(agent.model.weight[1]))
     assert agent.act(time=1.0)[0] != LEFT  # punished for moving left, it now prefers another move

@@ -1,4 +1,5 @@
-"""TAMER for Tetris placements: greedy choice, deltas, credit of held feedback, learning from an oracle."""
+"""TAMER for Tetris placements: greedy choice, deltas, credit of the feedback the channel delivers, learning
+from an oracle through train.py's loop."""
 
 from __future__ import annotations
 
@@ -11,10 +12,9 @@ from hfrl_torch.agents.tamer import TamerAgent, placement_deltas
 from hfrl_torch.envs.tetris import TetrisEnv, TetrisRules
 from hfrl_torch.envs.tetris.engine_numba import play
 from hfrl_torch.envs.tetris.features import BT
-from hfrl_torch.experiment.tetris_tamer import run_tamer
+from hfrl_torch.feedback.channel import FeedbackChannel
 from hfrl_torch.feedback.credit import GammaDelay, credit_weights
 from hfrl_torch.feedback.events import FeedbackEvent
-from hfrl_torch.trainers import OracleTrainer
 
 
 def _obs(after, state, mask, terminal=None) -> TensorDict:
@@ -78,13 +78,14 @@ def test_feedback_waits_for_its_time_and_credits_the_placement_just_made():
     )
     agent.record(obs2, torch.tensor([0, 0]), time=1.0)
     # board 0: an event at 0.5 judges the first placement (phi [0, 1]); board 1: at 1.2, the second
-    agent.give_feedback([[_ev(0.5, 1.0)], [_ev(1.2, -1.0), _ev(7.0, 1.0)]])
-    assert agent.learn(now=0.9).tolist() == [1, 0]
+    channel = FeedbackChannel(2)
+    channel.put_events([[_ev(0.5, 1.0)], [_ev(1.2, -1.0), _ev(7.0, 1.0)]])
+    assert agent.learn(channel.deliver(0.9)).tolist() == [1, 0]
     assert torch.allclose(agent.model.weight[0], torch.tensor([0.0, 0.5], dtype=torch.float64))
     assert torch.equal(agent.model.weight[1], torch.zeros(2, dtype=torch.float64))
-    assert agent.learn(now=2.0).tolist() == [0, 1]
+    assert agent.learn(channel.deliver(2.0)).tolist() == [0, 1]
     assert torch.allclose(agent.model.weight[1], torch.tensor([-2.5, 0.0], dtype=torch.float64))
-    assert len(agent.pending[1]) == 1 and agent.applied.tolist() == [1, 1]
+    assert channel.pending == 1 and agent.applied.tolist() == [1, 1]
 
 
 def test_gamma_credit_spreads_over_recent_placements():
@@ -92,34 +93,38 @@ def test_gamma_credit_spreads_over_recent_placements():
     agent = TamerAgent(1, learners=1, alpha=1.0, credit=delay, window=None)
     for k, f in enumerate([1.0, 10.0, 100.0]):
         agent.record(_obs([[[f]]], [[0.0]], [[True]]), torch.tensor([0]), time=0.2 * k)
-    agent.give_feedback([[_ev(0.65, 1.0)]])
-    agent.learn(now=1.0)
+    channel = FeedbackChannel(1)
+    channel.put_events([[_ev(0.65, 1.0)]])
+    agent.learn(channel.deliver(1.0))
     c = credit_weights(0.65, [0.0, 0.2, 0.4], [0.2, 0.4, float("inf")], delay, window=None)
     assert agent.model.weight.item() == pytest.approx(
         float(c @ torch.tensor([1.0, 10.0, 100.0], dtype=torch.float64))
     )
 
 
-def test_run_tamer_is_deterministic_and_counts_games():
-    kw = dict(rules=TetrisRules(8, 8), games=3, alpha=0.001, learners=3, seed=5, max_pieces=300)
-    a = run_tamer(trainer=OracleTrainer(0.5, 0.9, seed=2), **kw)
-    b = run_tamer(trainer=OracleTrainer(0.5, 0.9, seed=2), **kw)
-    assert a["lines"].shape == (3, 3) and torch.equal(a["lines"], b["lines"])
-    assert torch.equal(a["weights"], b["weights"])
-    assert (a["pieces"] > 0).all() and (a["pieces"] <= 300).all()
-    assert torch.equal(a["feedback"], a["positive"] + a["negative"]) and (a["applied"] <= a["feedback"]).all()
+def test_tamer_learner_is_deterministic_and_counts_games(tmp_path, run_learner):
+    over = ["agent=tamer", "trainer=oracle", "agent.games=3", "agent.learners=3", "seed=5", "domain.width=8"]
+    over += ["domain.height=8", "domain.max_pieces=300", "human.alpha=0.001", "trainer.timing.enabled=false"]
+    a, final = run_learner(tmp_path / "a", *over)
+    b, _ = run_learner(tmp_path / "b", *over)
+    assert a.lines.shape == (3, 3) and torch.equal(a.lines, b.lines)
+    assert torch.equal(a.human.model.weight, b.human.model.weight)
+    assert (a.pieces > 0).all() and (a.pieces <= 300).all()
+    given = a.given.sum(1)
+    assert torch.equal(given[:, 0], given[:, 1] + given[:, 2]) and (a.human.applied <= given[:, 0]).all()
     # L = 0.5: about half of the placements get feedback
-    rate = a["feedback"].sum() / a["pieces"].sum()
+    rate = given[:, 0].sum() / a.pieces.sum()
     assert 0.4 < rate < 0.6
+    assert final["game"] == 3 and final["feedback_events"] == float(given[:, 0].sum())
 
 
-def test_oracle_trained_tamer_clears_clearly_more_lines_than_untrained():
-    rules = TetrisRules(10, 10)
-    out = run_tamer(
-        rules, 5, OracleTrainer(1.0, 1.0, seed=0), alpha=0.001, learners=10, seed=0, max_pieces=2000
-    )
-    lines = out["lines"].double()
+def test_oracle_trained_tamer_clears_clearly_more_lines_than_untrained(tmp_path, run_learner):
+    over = ["agent=tamer", "trainer=oracle", "agent.games=5", "agent.learners=10", "seed=0"]
+    over += ["domain.max_pieces=2000", "human.alpha=0.001", "trainer.frequency=1.0", "trainer.consistency=1.0"]
+    learner, _ = run_learner(tmp_path, *over, "trainer.timing.enabled=false")
+    lines = learner.lines.double()
     first, later = lines[:, 0].mean(), lines[:, 2:].mean()
+    rules = TetrisRules(10, 10)
     seeds = torch.arange(100, 150)
     random_lines, _, _ = play(rules, BT, torch.zeros(21), seeds, random_policy=True)
     untrained, _, _ = play(rules, BT, torch.zeros(21), seeds)  # w = 0: always the first placement

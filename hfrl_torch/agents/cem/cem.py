@@ -20,7 +20,7 @@ import torch
 from hfrl_torch.common.stats import summarize
 
 # (weights [N, F], game seeds [N]) -> (lines [N], pieces [N], capped [N]: stopped by the piece limit),
-# optionally followed by a shaping bonus [N] added to the lines when candidates are ranked (reward shaping).
+# optionally followed by the fitness [N] candidates are ranked by instead of their lines (reward shaping).
 Rollout = Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, ...]]
 
 NOISE_SCHEDULES = ("constant", "decreasing", "none")
@@ -92,8 +92,8 @@ class CrossEntropyMethod:
         game_seeds = torch.randint(0, 2**62, (c.games_per_candidate,), generator=game_gen, dtype=torch.int64)
         weights = candidates.repeat_interleave(c.games_per_candidate, dim=0)
         seeds = game_seeds.repeat(c.population)
-        lines, pieces, capped, *bonus = self.rollout(weights, seeds)
-        fitness = lines.to(torch.float64) + (bonus[0].to(torch.float64) if bonus else 0.0)
+        lines, pieces, capped, *shaped = self.rollout(weights, seeds)
+        fitness = shaped[0].to(torch.float64) if shaped else lines.to(torch.float64)
         scores = fitness.view(c.population, c.games_per_candidate).mean(1)
         lines_per_candidate = lines.to(torch.float64).view(c.population, c.games_per_candidate).mean(1)
 
@@ -115,8 +115,8 @@ class CrossEntropyMethod:
             "cem/noise": self.noise(t),
             "cem/std_mean": float(self.variance.sqrt().mean()),
         }
-        if bonus:
-            metrics["population/shaping_bonus_mean"] = float(bonus[0].to(torch.float64).mean())
+        if shaped:
+            metrics["population/shaping_bonus_mean"] = float((fitness - lines.to(torch.float64)).mean())
         return metrics
 
     def evaluate_mean(self, games: int | None = None) -> torch.Tensor:

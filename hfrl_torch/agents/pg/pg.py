@@ -20,7 +20,7 @@ def score_and_fisher(
     weight: torch.Tensor,
     temperature: float,
     fisher: bool = True,
-    bias: torch.Tensor | None = None,
+    values: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """The score grad_theta log pi(a | s) ``[L, F]`` of the placements taken and (with ``fisher``) the
     Fisher matrix of each state, E_a~pi[score score^T] ``[L, F, F]``, under
@@ -28,12 +28,13 @@ def score_and_fisher(
 
     With fbar = E_a~pi f(s'_a): score = (f(s'_a) - fbar) / T and Fisher = Cov_pi(f(s'_a)) / T^2 (the exact
     expectation over the placements, Kakade's F_s(theta), not the outer product of the one sampled).
-    ``bias`` ``[L, A]`` (e.g. w H^(s, a), fusion with the person's model) is added to theta . f before the
-    division by T; it does not depend on theta, so the score keeps its form under the biased policy.
+    ``values`` ``[L, A]`` replaces theta . f in the logits (e.g. theta . f + w H^, fused with the person's
+    model by ``hfrl_torch.fusion``); what it adds does not depend on theta, so the score keeps its form.
     """
     f = features.to(torch.float64)
-    values = torch.einsum("laf,lf->la", f, weight)
-    logits = (values if bias is None else values + bias.to(torch.float64)) / temperature
+    if values is None:
+        values = torch.einsum("laf,lf->la", f, weight)
+    logits = values.to(torch.float64) / temperature
     p = logits.masked_fill(~allowed, -torch.inf).softmax(-1)
     centred = (f - (p.unsqueeze(-1) * f).sum(1, keepdim=True)) / temperature
     score = centred[torch.arange(f.shape[0]), action]
@@ -131,17 +132,20 @@ class PolicyGradient(nn.Module):
             self.baseline_den > 0, self.baseline_num / self.baseline_den.clamp(min=1e-300), 0.0
         )
 
+    def values(self, features: torch.Tensor) -> torch.Tensor:
+        """theta . f(s'_a) ``[L, A]``: the logits before the temperature (R, for fusion)."""
+        return torch.einsum("laf,lf->la", features.to(torch.float64), self.weight)
+
     def forward(
         self,
         features: torch.Tensor,
         mask: torch.Tensor,
         terminal: torch.Tensor,
-        bias: torch.Tensor | None = None,
+        values: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        """log pi(a | s) ``[L, A]`` of every placement (-inf where not allowed); ``bias`` ``[L, A]`` is added
-        to theta . f before dividing by T (fusion with H^: pi ~ exp((theta . f + w H^) / T))."""
-        values = torch.einsum("laf,lf->la", features.to(torch.float64), self.weight)
-        logits = (values if bias is None else values + bias.to(torch.float64)) / self.temperature
+        """log pi(a | s) ``[L, A]`` of every placement (-inf where not allowed); ``values`` ``[L, A]`` replaces
+        theta . f before dividing by T (fused with H^: pi ~ exp((theta . f + w H^) / T))."""
+        logits = (self.values(features) if values is None else values.to(torch.float64)) / self.temperature
         return logits.masked_fill(~allowed_placements(mask, terminal), -torch.inf).log_softmax(-1)
 
     @torch.no_grad()
@@ -150,10 +154,10 @@ class PolicyGradient(nn.Module):
         features: torch.Tensor,
         mask: torch.Tensor,
         terminal: torch.Tensor,
-        bias: torch.Tensor | None = None,
+        values: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """Placements ``[L]`` sampled from pi with the module's generator."""
-        log_p = self(features, mask, terminal, bias)
+        log_p = self(features, mask, terminal, values)
         return torch.multinomial(log_p.exp(), 1, generator=self.generator).squeeze(-1)
 
     @torch.no_grad()
@@ -164,13 +168,13 @@ class PolicyGradient(nn.Module):
         terminal: torch.Tensor,
         action: torch.Tensor,
         active: torch.Tensor | None = None,
-        bias: torch.Tensor | None = None,
+        values: torch.Tensor | None = None,
     ) -> None:
-        """Add the score and the state's Fisher matrix of the placements just taken (under the policy with
-        ``bias``, as they were sampled) to each active learner's game in progress."""
+        """Add the score and the state's Fisher matrix of the placements just taken (under the policy of
+        ``values``, as they were sampled) to each active learner's game in progress."""
         allowed = allowed_placements(mask, terminal)
         score, fisher = score_and_fisher(
-            features, allowed, action, self.weight, self.temperature, fisher=self.natural, bias=bias
+            features, allowed, action, self.weight, self.temperature, fisher=self.natural, values=values
         )
         live = torch.ones(self.learners, dtype=torch.bool) if active is None else active.to(torch.bool)
         self.game_score += torch.where(live.unsqueeze(-1), score, 0.0)
@@ -204,3 +208,26 @@ class PolicyGradient(nn.Module):
             self.games_in_update = torch.where(step, 0, self.games_in_update)
             self.updates += step.to(torch.int64)
         return step
+
+    _STATE = (
+        "game_score",
+        "game_fisher",
+        "gradient_sum",
+        "fisher_sum",
+        "games_in_update",
+        "baseline_num",
+        "baseline_den",
+        "updates",
+    )
+
+    def learner_state(self) -> dict[str, torch.Tensor]:
+        """The weights, the games and updates in progress and the sampler: what a resumed run continues."""
+        state = {k: getattr(self, k).clone() for k in self._STATE}
+        return {"weight": self.weight.detach().clone(), **state, "generator": self.generator.get_state()}
+
+    def load_learner_state(self, state: dict[str, torch.Tensor]) -> None:
+        """Restore :meth:`learner_state`'s output (same learners and features)."""
+        self.weight.copy_(state["weight"])
+        for k in self._STATE:
+            setattr(self, k, state[k].clone())
+        self.generator.set_state(state["generator"])

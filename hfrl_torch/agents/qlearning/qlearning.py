@@ -122,3 +122,17 @@ class LinearQLearning(nn.Module):
         self.weight += self.alpha * delta.unsqueeze(-1) * chosen
         self.bias += self.alpha * delta
         return delta
+
+    def learner_state(self) -> dict[str, torch.Tensor]:
+        """The weights and the exploration generator: what a resumed run continues."""
+        return {
+            "weight": self.weight.detach().clone(),
+            "bias": self.bias.detach().clone(),
+            "generator": self.generator.get_state(),
+        }
+
+    def load_learner_state(self, state: dict[str, torch.Tensor]) -> None:
+        """Restore :meth:`learner_state`'s output (same learners and features)."""
+        self.weight.copy_(state["weight"])
+        self.bias.copy_(state["bias"])
+        self.generator.set_state(state["generator"])

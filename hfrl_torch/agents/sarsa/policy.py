@@ -3,8 +3,9 @@ evaluation: no exploration, no learning.
 
 Field f of the evaluation batch plays for team (learner) f % teams; the keeper with the ball reads its own
 weight table (team * keepers + keeper, or the team's with ``share_weights``). Without a trainer the keepers
-take argmax Q. With one, they choose by the run's fusion rule on the checkpoint's Q and H^, with the weight
-w each team had when the checkpoint was written (:class:`FusedKeepers` during training):
+take argmax Q. With one, they choose by the run's fusion rule on the checkpoint's Q and H^, through the same
+fusion component as in training (:class:`~hfrl_torch.fusion.fusion.Fusion`, in evaluation mode), with the
+weight w each team had when the checkpoint was written:
 
 * ``none``, ``reward_shaping``: argmax Q (shaping acts on the reward Sarsa learned from, not the choice);
 * ``human_only``: argmax H^;
@@ -24,15 +25,16 @@ from __future__ import annotations
 from typing import Any
 
 import torch
+from tensordict import TensorDict
 from torch import Tensor
 
-from hfrl_torch.agents.sarsa.fused_keepers import _VALUE_RULE, KEEPAWAY_SCHEMES, SCALINGS
+from hfrl_torch import keys
 from hfrl_torch.common.errors import CheckpointError
 from hfrl_torch.envs.keepaway import KeeperChooser
-from hfrl_torch.fusion.schemes import fuse_values, rescale_range
+from hfrl_torch.fusion.fusion import SCALINGS, Fusion
+from hfrl_torch.fusion.schedules import ConstantWeight
+from hfrl_torch.fusion.schemes import FUSIONS
 from hfrl_torch.models.tile_coding import TileCoding
-
-CONTROL_SHARING_THRESHOLD = 0.5
 
 
 def greedy_with_random_ties(values: Tensor, mask: Tensor, generator: torch.Generator) -> Tensor:
@@ -93,7 +95,7 @@ def load_keeper_policy(
             raise ValueError(f"{weight.shape[0]} weight tables for {teams} teams of {keepers} keepers")
         coder = _coder(policy, weight, device)
         human = policy.get("human")
-        scheme, w, per_keeper, scaling, spread, model = "none", None, False, "none", None, None
+        scheme, w, per_keeper, model, fusion = "none", None, False, None, None
         if human is not None:
             scheme, scaling = str(human["scheme"]), str(human["scaling"])
             if scaling not in SCALINGS:
@@ -101,7 +103,7 @@ def load_keeper_policy(
             spread = torch.as_tensor(human["q_spread"], dtype=torch.float64)
             if spread.shape != (teams,):
                 raise ValueError(f"{spread.numel()} Q spreads for {teams} teams")
-            if scheme not in KEEPAWAY_SCHEMES:
+            if scheme not in FUSIONS:
                 raise ValueError(f"fusion scheme {scheme!r}")
             per_keeper = human["model"] == "keeper"
             w = torch.as_tensor(human["weight"], dtype=torch.float64)
@@ -110,6 +112,8 @@ def load_keeper_policy(
             model = _coder(policy, checkpoint["state"]["human"]["human_weight"], device)
             if model.learners != (teams * keepers if per_keeper else teams):
                 raise ValueError(f"{model.learners} H^ models of kind {human['model']!r} for {teams} teams")
+            fusion = Fusion.from_option(scheme, ConstantWeight(w.tolist()), scaling=scaling).eval()
+            fusion.q_spread = spread.clone()
     except (KeyError, TypeError, ValueError, AttributeError, RuntimeError) as e:
         raise CheckpointError(f"checkpoint {where!r} holds no playable keepaway policy ({e})") from None
 
@@ -119,22 +123,14 @@ def load_keeper_policy(
         mask = mask.to(device=device, dtype=torch.bool)
         tiles = coder.tiles(obs.to(device=device, dtype=torch.float32))
         q = coder(team if share else team * keepers + holder, tiles)
-        if model is None or scheme in ("none", "reward_shaping"):
-            values = q
-        else:
+        values = q
+        if fusion is not None:
             h = model(team * keepers + holder if per_keeper else team, tiles).to(torch.float64)
-            wt = w.to(device)[team]
-            if scheme == "human_only":
-                values = h
-            elif scheme == "control_sharing":
-                values = torch.where((wt >= CONTROL_SHARING_THRESHOLD).unsqueeze(1), h, q.to(torch.float64))
-            else:
-                r, hh = q.to(torch.float64), h
-                if scaling == "decision":
-                    r, hh = rescale_range(q, mask), rescale_range(h, mask)
-                elif scaling == "spread" and scheme != "exponential":
-                    hh = h * spread.to(device)[team].unsqueeze(1)
-                values = fuse_values(r, hh, _VALUE_RULE.get(scheme, scheme), wt)
+            decisions = TensorDict(
+                {keys.ENV_VALUES: q, keys.HUMAN_VALUES: h, keys.ACTION_MASK: mask, keys.LEARNER: team.cpu()},
+                batch_size=[obs.shape[0]],
+            )
+            values = fusion.fuse(decisions).get(keys.FUSED_VALUES)
         return greedy_with_random_ties(values, mask, generator).to(obs.device)
 
     info = {

@@ -30,7 +30,6 @@ traces are dropped first (the reference raises its minimum trace instead).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from typing import Any
 
 import torch
@@ -142,6 +141,13 @@ class SarsaLambda:
         """The greedy actions [M] (random ties, no exploration, no learning): for evaluation."""
         return self.select(self.coder(self.tables[learners], self.coder.tiles(obs)), mask, explore=False)
 
+    @torch.no_grad()
+    def action_values(self, learners: torch.Tensor, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The active tiles [M, A, N] and Q [M, A] of each row's state (lines 1-3 / 11-13), for a caller that
+        fuses Q with other values before :meth:`decide` chooses."""
+        tiles = self.coder.tiles(obs)
+        return tiles, self.coder(self.tables[learners], tiles)
+
     # ------------------------------------------------------- the three routines
 
     def start_episode(self, learners: torch.Tensor, obs: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -165,8 +171,10 @@ class SarsaLambda:
         obs: torch.Tensor,
         mask: torch.Tensor,
         reward: torch.Tensor,
-        fuse: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
+        *,
         explore: bool = True,
+        values: tuple[torch.Tensor, torch.Tensor] | None = None,
+        choose_by: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """One decision per row: RLstartEpisode where the learner has no pending action, RLstep with
         ``reward`` (the SMDP step's reward, e.g. cycles since its last decision) where it has one.
@@ -175,9 +183,10 @@ class SarsaLambda:
         :param obs: [M, F] state variables of each learner's state s.
         :param mask: [M, A] available actions A^s.
         :param reward: [M] reward of the step that ended in s (ignored for starting learners).
-        :param fuse: the action is chosen over ``fuse(Q [M, A], tiles [M, A, N])`` instead of Q (a
-            person's H^ fused in); the update stays Sarsa's, with Q of the action taken.
         :param explore: epsilon-greedy (True) or greedy with random ties (False).
+        :param values: the rows' ``(tiles, Q)`` from :meth:`action_values` (computed here if None).
+        :param choose_by: [M, A] values to choose the action by instead of Q (a person's H^ fused in by
+            ``hfrl_torch.fusion``); the update stays Sarsa's, with Q of the action taken.
         :returns: [M] the chosen actions (the new LastAction); their active tiles are left in
             ``chosen_tiles`` [M, N].
         """
@@ -188,9 +197,8 @@ class SarsaLambda:
         mask = mask.to(torch.bool)
         starting = self.last_action[learners] < 0
         tables = self.tables[learners]
-        tiles = coder.tiles(obs)  # [M, A, N]            lines 1-2 / 11-12
-        q = coder(tables, tiles)  # [M, A]               lines 3 / 13
-        action = self.select(q if fuse is None else fuse(q, tiles), mask, explore)  # lines 4 / 14
+        tiles, q = self.action_values(learners, obs) if values is None else values  # lines 1-3 / 11-13
+        action = self.select(q if choose_by is None else choose_by, mask, explore)  # lines 4 / 14
         q_next = q.gather(1, action.unsqueeze(1)).squeeze(1)
 
         index, value = self.trace_index[learners], self.trace_value[learners]

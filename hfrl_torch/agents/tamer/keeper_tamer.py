@@ -12,7 +12,9 @@ counted (``credited`` / ``decisions``).
 from __future__ import annotations
 
 import torch
+from tensordict import TensorDictBase
 
+from hfrl_torch import keys
 from hfrl_torch.feedback.credit import CreditModel, GammaDelay, credit_weights
 from hfrl_torch.models.tile_coding import TileCoding
 
@@ -82,6 +84,18 @@ class KeeperTamer:
         self.filled = roll(self.filled, torch.ones_like(d))
         self.got_credit = roll(self.got_credit, torch.zeros_like(d))
         self.decisions += int(d.sum())
+
+    def learn(self, feedback: TensorDictBase) -> int:
+        """Learn from the feedback entries of ``feedback`` (``keys.FEEDBACK``, ``FEEDBACK_TIME``,
+        ``FEEDBACK_MASK``, each [B, K]: the feedback channel's delivery), slot by slot, oldest first; returns
+        how many decisions got credit."""
+        given = feedback.get(keys.FEEDBACK_MASK).to(torch.bool).cpu()
+        if not bool(given.any()):
+            return 0
+        value = torch.where(given, feedback.get(keys.FEEDBACK).to(torch.float64).cpu(), 0.0)
+        when = torch.where(given, feedback.get(keys.FEEDBACK_TIME).to(torch.float64).cpu(), 0.0)
+        slots = int(given.any(0).nonzero().max()) + 1
+        return sum(self.give(value[:, k], when[:, k]) for k in range(slots))
 
     def give(self, values: torch.Tensor, times: torch.Tensor) -> int:
         """Learn from feedback ``values`` [B] (0: none) arriving at ``times`` [B]; returns how many decisions

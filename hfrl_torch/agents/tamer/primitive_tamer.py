@@ -9,13 +9,13 @@ is credited to the last move through its delta f_{t-1} - f_{t-2} (``PreviousStep
 from __future__ import annotations
 
 import torch
+from tensordict import TensorDictBase
 
 from hfrl_torch.agents.tamer.tamer import TamerAgent
 from hfrl_torch.envs.tetris.engine_torch import board_features_t
 from hfrl_torch.envs.tetris.features import feature_id, feature_size
 from hfrl_torch.envs.tetris.primitive import DROP, NUM_ACTIONS, PrimitiveTetris
 from hfrl_torch.feedback.credit import CreditModel
-from hfrl_torch.feedback.events import FeedbackEvent
 
 VIEWS = ("ghost", "visible")
 _STATE = ("cells", "pieces", "keys", "index", "rot", "row", "col", "alive")
@@ -103,10 +103,7 @@ class PrimitiveTamerAgent:
         self.tamer.record_phi(chosen, time, active)
         return action
 
-    def give_feedback(self, events: list[list[FeedbackEvent]], active: torch.Tensor | None = None) -> None:
-        """Hold feedback events (one list per board) until the clock passes them."""
-        self.tamer.give_feedback(events, active)
-
-    def learn(self, now: float) -> torch.Tensor:
-        """Apply the feedback due by ``now`` to the last moves (Algorithm 2); returns how many [B]."""
-        return self.tamer.learn(now)
+    def learn(self, feedback: TensorDictBase) -> torch.Tensor:
+        """Learn from the feedback channel's entries (``keys.FEEDBACK*``) for the last moves (Algorithm 2);
+        returns how many events each board learned from [B]."""
+        return self.tamer.learn(feedback)

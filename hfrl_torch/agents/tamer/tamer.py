@@ -11,7 +11,6 @@ from tensordict import TensorDictBase
 
 from hfrl_torch import keys
 from hfrl_torch.feedback.credit import CreditModel, PreviousStep, credit_weights
-from hfrl_torch.feedback.events import FeedbackEvent
 from hfrl_torch.models.linear import greedy_placement
 from hfrl_torch.models.reward_model import LinearRewardModel
 
@@ -31,10 +30,11 @@ class TamerAgent:
     H^(s, a) = w . phi(s, a) with phi the change of the board features caused by the whole placement,
     f(s') - f(s) (Knox's 46 features or the thesis's 21, whatever the env computes). Actions are greedy,
     argmax_a H^(s, a) over the valid placements, the first on ties and a game-ending placement only when
-    every placement ends the game. Feedback events are held until the loop's clock passes their time,
-    then credited to the recent placements by ``credit`` (all to the placement just completed with
-    ``PreviousStep``, the Tetris default; ``GammaDelay`` / ``UniformDelay`` spread it by time) and
-    learned with w += alpha * sum_i c_i (h - H^(phi_i)) phi_i, one event after another.
+    every placement ends the game. Feedback comes as the tensordict entries of the feedback channel
+    (``keys.FEEDBACK*``: the events due on the loop's clock, K slots per board); each event is credited to
+    the recent placements by ``credit`` (all to the placement just completed with ``PreviousStep``, the
+    Tetris default; ``GammaDelay`` / ``UniformDelay`` spread it by time) and learned with
+    w += alpha * sum_i c_i (h - H^(phi_i)) phi_i, one event after another.
 
     :param num_features: F, the size of the env's feature set.
     :param learners: L, one independent learner per board of the env.
@@ -67,7 +67,6 @@ class TamerAgent:
         self.phi = torch.zeros(learners, history, num_features, dtype=torch.float64)
         self.starts = torch.full((learners, history), _PAST, dtype=torch.float64)
         self.filled = torch.zeros(learners, history, dtype=torch.bool)
-        self.pending: list[list[FeedbackEvent]] = [[] for _ in range(learners)]
         self.applied = torch.zeros(learners, dtype=torch.int64)
 
     @property
@@ -99,31 +98,44 @@ class TamerAgent:
         self.starts = torch.where(a, torch.cat([self.starts[:, 1:], now], 1), self.starts)
         self.filled = torch.where(a, torch.cat([self.filled[:, 1:], act.view(-1, 1)], 1), self.filled)
 
-    def give_feedback(self, events: list[list[FeedbackEvent]], active: torch.Tensor | None = None) -> None:
-        """Hold each learner's events (one list per board) until the clock passes their time."""
-        for i, evs in enumerate(events):
-            if active is None or bool(active[i]):
-                self.pending[i].extend(evs)
-
-    def learn(self, now: float) -> torch.Tensor:
-        """Apply every held event with time <= ``now`` (Algorithm 2), oldest first; returns how many [L]."""
-        due: list[list[FeedbackEvent]] = []
-        for i in range(self.learners):
-            evs = sorted(self.pending[i], key=lambda e: e.time)
-            ready = [e for e in evs if e.time <= now]
-            self.pending[i] = [e for e in evs if e.time > now]
-            due.append(ready)
-        rounds = max((len(d) for d in due), default=0)
-        count = torch.tensor([len(d) for d in due], dtype=torch.int64)
-        if rounds == 0:
+    def learn(self, feedback: TensorDictBase) -> torch.Tensor:
+        """Learn from the feedback entries of ``feedback`` (``keys.FEEDBACK``, ``FEEDBACK_TIME``,
+        ``FEEDBACK_MASK``, each [L, K]; Algorithm 2), slot by slot, oldest first; returns how many [L]."""
+        value = feedback.get(keys.FEEDBACK).to(torch.float64)
+        given = feedback.get(keys.FEEDBACK_MASK).to(torch.bool)
+        when = torch.where(given, feedback.get(keys.FEEDBACK_TIME).to(torch.float64), 0.0)
+        count = given.sum(-1).cpu().to(torch.int64)
+        slots = int(given.any(0).nonzero().max()) + 1 if bool(given.any()) else 0
+        if slots == 0:
             return count
         ends = torch.cat([self.starts[:, 1:], torch.full((self.learners, 1), torch.inf)], dim=1)
         ends = torch.maximum(ends, self.starts)
-        for r in range(rounds):
-            t = torch.tensor([d[r].time if r < len(d) else now for d in due], dtype=torch.float64)
-            h = torch.tensor([d[r].value if r < len(d) else 0.0 for d in due], dtype=torch.float64)
-            c = credit_weights(t, self.starts, ends, self.credit, self.window, self.renormalise)
+        for k in range(slots):
+            h = torch.where(given[:, k], value[:, k], 0.0).cpu()
+            c = credit_weights(
+                when[:, k].cpu(), self.starts, ends, self.credit, self.window, self.renormalise
+            )
             c = c * self.filled
             self.model.update(self.phi, h.unsqueeze(-1).expand_as(c), c, self.alpha)
         self.applied += count
         return count
+
+    def learner_state(self) -> dict[str, torch.Tensor]:
+        """H^'s weights and the recent placements that can still get credit: what a resumed run continues."""
+        return {
+            "weight": self.model.weight.detach().clone(),
+            "phi": self.phi.clone(),
+            "starts": self.starts.clone(),
+            "filled": self.filled.clone(),
+            "applied": self.applied.clone(),
+        }
+
+    def load_learner_state(self, state: dict[str, torch.Tensor]) -> None:
+        """Restore :meth:`learner_state`'s output (same learners, features and history)."""
+        self.model.weight.copy_(state["weight"])
+        for k in ("phi", "starts", "filled", "applied"):
+            if state[k].shape != getattr(self, k).shape:
+                raise ValueError(
+                    f"TAMER state {k!r} of shape {tuple(state[k].shape)} for {tuple(getattr(self, k).shape)}"
+                )
+            setattr(self, k, state[k].clone())

@@ -186,3 +186,38 @@ class TetrisEnv(EnvBase):
 
     def _set_seed(self, seed: int | None) -> None:
         self._rng.manual_seed(0 if seed is None else int(seed))
+
+    _ENGINE_STATE = ("rows", "heights", "pieces", "keys", "index", "alive")
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        """Every board's game in progress and the seed generator: what :meth:`load_state_dict` continues."""
+        state = {k: torch.as_tensor(getattr(self.engine, k)).clone().cpu() for k in self._ENGINE_STATE}
+        return {
+            **state,
+            "lines": self._lines.cpu(),
+            "game_seeds": self._game_seeds.cpu(),
+            "rng": self._rng.get_state(),
+        }
+
+    def load_state_dict(self, state: dict[str, torch.Tensor]) -> TensorDictBase:
+        """Continue the games of :meth:`state_dict`; returns the observation of the boards as they are."""
+        for k in self._ENGINE_STATE:
+            current = getattr(self.engine, k)
+            saved = state[k]
+            if tuple(saved.shape) != tuple(current.shape):
+                raise ValueError(
+                    f"Tetris state {k!r} of shape {tuple(saved.shape)}; this env holds {tuple(current.shape)}"
+                )
+            if isinstance(current, torch.Tensor):
+                current.copy_(saved.to(current.device))
+            else:
+                current[...] = saved.numpy()
+        self._lines = state["lines"].to(self.device).clone()
+        self._game_seeds = state["game_seeds"].to(self.device).clone()
+        self._rng.set_state(state["rng"])
+        td = self._observation()
+        alive = torch.as_tensor(self.engine.alive, device=self.device).unsqueeze(-1)
+        td.set(keys.DONE, ~alive)
+        td.set(keys.TERMINATED, ~alive)
+        td.set(keys.TRUNCATED, torch.zeros_like(alive))
+        return td

@@ -16,7 +16,7 @@ from torch import Tensor
 
 from hfrl_torch.common.errors import CheckpointError
 
-__all__ = ["IncrementalTrust", "MatchRate", "trust_from_policies"]
+__all__ = ["IncrementalTrust", "MatchCounter", "trust_from_policies"]
 
 
 def _check_rate(m: float, what: str) -> float:
@@ -125,44 +125,71 @@ class IncrementalTrust:
         self.trust, self.previous_performance, self.episodes = trust, prev, episodes
 
 
-class MatchRate:
-    """Within one episode, the fraction of decisions where H^'s best action equals the environment policy's.
+class MatchCounter:
+    """Per learner, within its current episode: how often H^'s best action is the environment policy's.
 
-    This is the ``m`` of eqs. 4.3 and 4.4. Feed it each step's chosen indices; ``value()`` is None until a
-    decision has been compared (so ``IncrementalTrust`` keeps its trust).
+    This is the ``m`` of eqs. 4.3 and 4.4, counted in one place for every learner and domain. A decision
+    counts only where H^ prefers some choosable action (an untaught H^, equal everywhere, agrees with
+    nothing and disagrees with nothing); best means the first best choosable action (valid, and not
+    game-ending unless every valid action ends the game).
+
+    :param learners: L, counted separately.
     """
 
-    def __init__(self) -> None:
-        self.matches = 0
-        self.total = 0
+    def __init__(self, learners: int) -> None:
+        if learners < 1:
+            raise ValueError(f"MatchCounter needs learners >= 1, got {learners}")
+        self.matches = torch.zeros(learners, dtype=torch.int64)
+        self.compared = torch.zeros(learners, dtype=torch.int64)
 
-    def update(self, human_actions: Tensor, env_actions: Tensor, mask: Tensor | None = None) -> None:
-        """Count decisions: ``human_actions`` (argmax H^) and ``env_actions`` (the env policy's argmax), same
-        shape; ``mask`` (bool, same shape) says which decisions count, e.g. steps with a real choice."""
-        h = torch.as_tensor(human_actions)
-        e = torch.as_tensor(env_actions)
-        if h.shape != e.shape:
-            raise ValueError(
-                f"human_actions and env_actions differ in shape: {tuple(h.shape)} and {tuple(e.shape)}"
-            )
-        same = h == e
-        if mask is None:
-            self.matches += int(same.sum())
-            self.total += same.numel()
+    @property
+    def learners(self) -> int:
+        return self.matches.shape[0]
+
+    def count(self, env_values: Tensor, human_values: Tensor, choosable: Tensor, learner: Tensor) -> None:
+        """Count the decisions of rows ``[M, A]`` (``choosable`` bool ``[M, A]``) made by ``learner`` [M]."""
+        h = human_values.detach().to(device="cpu", dtype=torch.float64)
+        r = env_values.detach().to(device="cpu", dtype=torch.float64)
+        keep = choosable.detach().cpu().to(torch.bool)
+        hi = h.masked_fill(~keep, -torch.inf).amax(-1)
+        lo = h.masked_fill(~keep, torch.inf).amin(-1)
+        prefers = hi > lo
+        same = h.masked_fill(~keep, -torch.inf).argmax(-1) == r.masked_fill(~keep, -torch.inf).argmax(-1)
+        self.add(learner, (prefers & same).to(torch.int64), prefers.to(torch.int64))
+
+    def add(self, learner: Tensor, matches: Tensor, compared: Tensor) -> None:
+        """Add counts made elsewhere (the compiled games): ``matches`` and ``compared`` [M] of ``learner`` [M]."""
+        idx = learner.detach().cpu().to(torch.int64).reshape(-1)
+        self.matches.index_add_(0, idx, matches.detach().cpu().to(torch.int64).reshape(-1))
+        self.compared.index_add_(0, idx, compared.detach().cpu().to(torch.int64).reshape(-1))
+
+    def rates(self) -> Tensor:
+        """m per learner [L] (float64; NaN where no decision was compared: the trust is then kept)."""
+        return torch.where(self.compared > 0, self.matches / self.compared.clamp(min=1), torch.nan).to(
+            torch.float64
+        )
+
+    def reset(self, learners: Tensor | None = None) -> None:
+        """Start new episodes for the flagged learners (bool [L]; None: all)."""
+        if learners is None:
+            self.matches.zero_()
+            self.compared.zero_()
             return
-        mk = torch.as_tensor(mask)
-        if mk.dtype != torch.bool or mk.shape != h.shape:
-            raise ValueError(
-                f"mask must be a bool tensor of shape {tuple(h.shape)}, got {mk.dtype} {tuple(mk.shape)}"
+        self.matches[learners] = 0
+        self.compared[learners] = 0
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"matches": self.matches.clone(), "compared": self.compared.clone()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        try:
+            matches, compared = state["matches"].to(torch.int64), state["compared"].to(torch.int64)
+        except (KeyError, TypeError, AttributeError) as e:
+            raise CheckpointError(
+                f"bad MatchCounter state ({e!r}); expected keys matches, compared"
+            ) from None
+        if matches.shape != self.matches.shape or compared.shape != self.compared.shape:
+            raise CheckpointError(
+                f"bad MatchCounter state: counts of {matches.numel()} learners, not {self.learners}"
             )
-        self.matches += int((same & mk).sum())
-        self.total += int(mk.sum())
-
-    def value(self) -> float | None:
-        """Matches / decisions compared, or None when none were compared."""
-        return self.matches / self.total if self.total else None
-
-    def reset(self) -> None:
-        """Start a new episode."""
-        self.matches = 0
-        self.total = 0
+        self.matches, self.compared = matches.clone(), compared.clone()

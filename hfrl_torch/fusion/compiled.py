@@ -1,11 +1,13 @@
-"""Whole games of a fused policy: the CE value R and the person's model H^ combined at every placement.
+"""Whole games of a fused policy in compiled code: the CE value R and H^ combined at every placement.
 
-The compiled twin of :class:`hfrl_torch.fusion.schemes.FusedActionSelector` over afterstates, so that a CE
-population can be scored under fusion at the engine's speed (thesis Figure 4.1: CE + human feedback).
-At each placement, for every valid placement a: R(a) = theta . f_env(s'_a) (the CE value) and
-H^(a) = h . (f_h(s'_a) - f_h(s)) (TAMER's model over feature changes). With ``normalise`` both are rescaled
-to [0, 1] over the placements that can be chosen, then fused by the scheme (see ``fuse_values``).
-Every argmax is "the first on ties, a game-ending placement only when all end the game", the env's rule.
+The compiled twin of :class:`~hfrl_torch.fusion.fusion.Fusion`'s decision rule over Tetris afterstates, so
+that a CE population can be scored under fusion at the engine's speed (thesis Figure 4.1: CE + human
+feedback). It takes the rule's code (``schemes.COMPILED_RULES``), the scale and the weights from the
+``Fusion`` it is given, and counts the matches behind the trust factor as ``fusion.trust.MatchCounter``
+does. At each placement, for every valid placement a: R(a) = theta . f_env(s'_a) (the CE value) and
+H^(a) = h . (f_h(s'_a) - f_h(s)) (TAMER's model over feature changes). With ``scaling="decision"`` both are
+rescaled to [0, 1] over the placements that can be chosen, then fused (see ``fuse_values``). Every argmax is
+"the first on ties, a game-ending placement only when all end the game", the env's rule.
 """
 
 from __future__ import annotations
@@ -29,24 +31,15 @@ from hfrl_torch.envs.tetris.features import BT, KNOX, feature_size
 from hfrl_torch.envs.tetris.pieces import placement_table
 from hfrl_torch.envs.tetris.rules import TetrisRules
 from hfrl_torch.envs.tetris.sequence import game_key, piece_at, uniform_index
+from hfrl_torch.fusion.fusion import Fusion
+from hfrl_torch.fusion.schemes import COMPILED_RULES
 
-# How a placement is chosen from R and H^ (codes of the kernel).
-ENV_ONLY = 0  # argmax R
-HUMAN_ONLY = 1  # argmax H^
-ADDITIVE = 2  # argmax R + w H^ (linear, action biasing, annealed)
-EXPONENTIAL = 3  # argmax R (1 + sign(H^) |H^|^w)
-CONTROL_SHARING = 4  # argmax H^ with probability min(w, 1), else argmax R
-
-RULES = {
-    "none": ENV_ONLY,
-    "reward_shaping": ENV_ONLY,
-    "human_only": HUMAN_ONLY,
-    "linear": ADDITIVE,
-    "annealed": ADDITIVE,
-    "action_biasing": ADDITIVE,
-    "exponential": EXPONENTIAL,
-    "control_sharing": CONTROL_SHARING,
-}
+ENV_ONLY = COMPILED_RULES["none"]
+HUMAN_ONLY = COMPILED_RULES["human_only"]
+ADDITIVE = COMPILED_RULES["linear"]
+EXPONENTIAL = COMPILED_RULES["exponential"]
+CONTROL_SHARING = COMPILED_RULES["control_sharing"]
+COMPILED_SCALINGS = ("none", "decision")
 
 _COIN_SALT = 0x5BD1E995
 _COIN_RESOLUTION = 1 << 24
@@ -108,13 +101,15 @@ def play_fused_games(
     out_pieces: np.ndarray,
     out_capped: np.ndarray,
     out_matches: np.ndarray,
+    out_compared: np.ndarray,
     out_human_return: np.ndarray,
 ) -> None:
     """Play game g with ``env_weights[g]`` (over the first ``n_env`` features of ``fid``) fused with
     ``human_weights[g]`` (over all of ``fid``) by ``rule`` at weight ``weight[g]``.
 
-    Also counts the placements where argmax H^ = argmax R (``out_matches``, for the trust factor) and sums
-    H^ of the placements taken (``out_human_return``, raw H^, for reward shaping).
+    Also counts, for the trust factor, the placements where H^ prefers some choosable placement
+    (``out_compared``) and, of those, the ones where argmax H^ = argmax R (``out_matches``), and sums H^ of
+    the placements taken (``out_human_return``, raw H^, for reward shaping).
     """
     n_games = seeds.shape[0]
     nrows = height + SPARE_ROWS
@@ -141,6 +136,7 @@ def play_fused_games(
         lines_total = 0
         filled = 0
         matches = 0
+        compared = 0
         human_return = 0.0
         capped = False
         p = piece_at(key, 0, bag)
@@ -190,8 +186,17 @@ def play_fused_games(
                 any_alive = any_alive or not end
             best_env = _argmax(r, over, na)
             best_human = _argmax(hv, over, na)
-            if best_env == best_human:
-                matches += 1
+            h_lo = np.inf
+            h_hi = -np.inf
+            for a in range(na):
+                if any_alive and over[a]:
+                    continue
+                h_lo = min(h_lo, hv[a])
+                h_hi = max(h_hi, hv[a])
+            if h_hi > h_lo:
+                compared += 1
+                if best_env == best_human:
+                    matches += 1
             if rule == ENV_ONLY:
                 pick = best_env
             elif rule == HUMAN_ONLY:
@@ -246,6 +251,7 @@ def play_fused_games(
         out_pieces[g] = i
         out_capped[g] = capped
         out_matches[g] = matches
+        out_compared[g] = compared
         out_human_return[g] = human_return
 
 
@@ -255,7 +261,8 @@ class FusedGames(NamedTuple):
     lines: torch.Tensor  # int64 [G]
     pieces: torch.Tensor  # int64 [G]
     capped: torch.Tensor  # bool [G]: stopped by max_pieces
-    matches: torch.Tensor  # int64 [G]: placements where argmax H^ = argmax R
+    matches: torch.Tensor  # int64 [G]: compared placements where argmax H^ = argmax R
+    compared: torch.Tensor  # int64 [G]: placements where H^ prefers some choosable placement
     human_return: torch.Tensor  # float64 [G]: sum of H^ over the placements taken
 
 
@@ -265,19 +272,21 @@ def play_fused(
     human_features: str,
     env_weights: torch.Tensor,
     human_weights: torch.Tensor,
-    scheme: str,
-    weight: float | torch.Tensor,
+    fusion: Fusion,
     seeds: torch.Tensor,
     *,
-    normalise: bool = True,
     max_pieces: int = 0,
+    weight: float | torch.Tensor | None = None,
 ) -> FusedGames:
-    """Play one game per seed under ``scheme`` (a key of ``RULES``); weights are [F] or [G, F].
+    """Play one game per seed under ``fusion``'s decision rule; weights are [F] or [G, F].
 
-    The env features must be the human features or their prefix (``bt`` is the first 21 of ``knox``).
+    The weight on H^ is the fusion's (learner 0; or ``weight``, one number or one per game). The env
+    features must be the human features or their prefix (``bt`` is the first 21 of ``knox``).
     """
-    if scheme not in RULES:
-        raise ValueError(f"scheme={scheme!r} is invalid; allowed: {', '.join(RULES)}")
+    if fusion.scaling not in COMPILED_SCALINGS:
+        raise ValueError(
+            f"compiled Tetris games fuse with scaling {', '.join(COMPILED_SCALINGS)}, not {fusion.scaling!r}"
+        )
     ids = {"bt": BT, "knox": KNOX}
     for what, name in (("env_features", env_features), ("human_features", human_features)):
         if name not in ids:
@@ -292,6 +301,8 @@ def play_fused(
     n_h = feature_size(fid, rules.width)
     check_weights(env_weights, n_env, g)
     check_weights(human_weights, n_h, g)
+    if weight is None:
+        weight = fusion.weight()[0]
     w = torch.as_tensor(weight, dtype=torch.float64).cpu().reshape(-1).expand(g).contiguous()
     if not (torch.isfinite(w).all() and (w >= 0).all()):
         raise ValueError(f"fusion weight must be finite and >= 0, got {weight!r}")
@@ -306,14 +317,15 @@ def play_fused(
         np.zeros(g, np.int64),
         np.zeros(g, np.bool_),
         np.zeros(g, np.int64),
+        np.zeros(g, np.int64),
         np.zeros(g, np.float64),
     )
     play_fused_games(
         rows(env_weights, n_env),
         rows(human_weights, n_h),
-        RULES[scheme],
+        fusion.compiled_rule,
         w.numpy(),
-        normalise,
+        fusion.scaling == "decision",
         seeds.cpu().numpy().astype(np.int64),
         rules.width,
         rules.height,

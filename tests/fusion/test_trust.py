@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from hfrl_torch.common.errors import CheckpointError
-from hfrl_torch.feedback.trust import IncrementalTrust, MatchRate, trust_from_policies
+from hfrl_torch.fusion.trust import IncrementalTrust, MatchCounter, trust_from_policies
 
 # ---------------------------------------------------------------- eq. 4.3
 
@@ -179,42 +179,51 @@ def test_incremental_trust_stays_in_unit_interval(initial, episodes):
 # ---------------------------------------------------------------- match rate
 
 
-def test_match_rate_counts_accumulates_and_resets():
-    mr = MatchRate()
-    assert mr.value() is None
-    mr.update(torch.tensor([1, 2, 3, 4]), torch.tensor([1, 0, 3, 0]))
-    assert mr.value() == pytest.approx(0.5)
-    mr.update(torch.tensor([5]), torch.tensor([5]))
-    assert (mr.matches, mr.total) == (3, 5)
-    mr.reset()
-    assert mr.value() is None and (mr.matches, mr.total) == (0, 0)
+def _values(*rows: list[float]) -> torch.Tensor:
+    return torch.tensor(rows, dtype=torch.float64)
 
 
-def test_match_rate_mask_selects_decisions():
-    mr = MatchRate()
-    mr.update(
-        torch.tensor([[1, 2], [3, 4]]),
-        torch.tensor([[1, 0], [3, 0]]),
-        mask=torch.tensor([[True, False], [True, True]]),
-    )
-    assert (mr.matches, mr.total) == (2, 3)
-    mr.reset()
-    mr.update(torch.tensor([1, 2]), torch.tensor([1, 2]), mask=torch.tensor([False, False]))
-    assert mr.value() is None
+def test_match_counter_counts_per_learner_accumulates_and_resets():
+    mc = MatchCounter(2)
+    assert torch.isnan(mc.rates()).all()
+    r = _values([1.0, 0.0, 0.0], [0.0, 2.0, 0.0], [0.0, 0.0, 1.0])
+    h = _values([5.0, 1.0, 1.0], [3.0, 0.0, 0.0], [0.0, 0.0, 2.0])  # best H^: 0, 0, 2; best R: 0, 1, 2
+    mc.count(r, h, torch.ones(3, 3, dtype=torch.bool), torch.tensor([0, 1, 1]))
+    assert mc.matches.tolist() == [1, 1] and mc.compared.tolist() == [1, 2]
+    assert mc.rates().tolist() == pytest.approx([1.0, 0.5])
+    mc.reset(torch.tensor([True, False]))
+    assert mc.compared.tolist() == [0, 2] and math.isnan(float(mc.rates()[0]))
+    mc.reset()
+    assert mc.compared.tolist() == [0, 0]
 
 
-def test_match_rate_rejects_bad_shapes():
-    mr = MatchRate()
-    with pytest.raises(ValueError, match="shape"):
-        mr.update(torch.tensor([1, 2]), torch.tensor([1, 2, 3]))
-    with pytest.raises(ValueError, match="mask"):
-        mr.update(torch.tensor([1, 2]), torch.tensor([1, 2]), mask=torch.tensor([1, 0]))
-    assert mr.total == 0
+def test_match_counter_counts_only_decisions_where_h_prefers_a_choosable_action():
+    mc = MatchCounter(1)
+    r = _values([1.0, 0.0, 0.0], [1.0, 0.0, 0.0])
+    h = _values([0.0, 0.0, 0.0], [9.0, 1.0, 1.0])  # an untaught H^; a preference only among masked actions
+    choosable = torch.tensor([[True, True, True], [False, True, True]])
+    mc.count(r, h, choosable, torch.zeros(2, dtype=torch.int64))
+    assert mc.compared.tolist() == [0]  # neither decision compares H^ and R
+    # the best is the first best among the choosable actions: H^ picks 1, R picks 1 (row 2 of R masked at 0)
+    mc.count(_values([0.0, 2.0, 1.0]), _values([0.0, 5.0, 1.0]), torch.tensor([[False, True, True]]), torch.tensor([0]))
+    assert (mc.matches.tolist(), mc.compared.tolist()) == ([1], [1])
+
+
+def test_match_counter_adds_counts_made_elsewhere_and_round_trips():
+    mc = MatchCounter(3)
+    mc.add(torch.tensor([0, 2, 2]), torch.tensor([1, 2, 0]), torch.tensor([4, 3, 1]))
+    assert mc.rates().tolist()[0] == pytest.approx(0.25) and mc.rates().tolist()[2] == pytest.approx(0.5)
+    fresh = MatchCounter(3)
+    fresh.load_state_dict(mc.state_dict())
+    assert torch.equal(fresh.matches, mc.matches) and torch.equal(fresh.compared, mc.compared)
+    with pytest.raises(CheckpointError, match="3"):
+        MatchCounter(2).load_state_dict(mc.state_dict())
 
 
 def test_match_rate_feeds_incremental_trust():
-    mr, tr = MatchRate(), IncrementalTrust(0.5)
-    assert tr.update(8, mr.value()) == 0.5
-    mr.update(torch.tensor([0, 1, 2, 3]), torch.tensor([0, 1, 2, 9]))
+    mc, tr = MatchCounter(1), IncrementalTrust(0.5)
+    rate = float(mc.rates()[0])
+    assert tr.update(8, None if math.isnan(rate) else rate) == 0.5
+    mc.add(torch.zeros(1, dtype=torch.int64), torch.tensor([3]), torch.tensor([4]))
     # l1 = 8, l2 = 8: (8 * .5 + 8 * .75) / 16
-    assert tr.update(8, mr.value()) == pytest.approx(0.625, abs=1e-12)
+    assert tr.update(8, float(mc.rates()[0])) == pytest.approx(0.625, abs=1e-12)

@@ -1,0 +1,141 @@
+"""Every finished keepaway episode of a batch of fields, and each field's and learner's simulated clock.
+
+The learning curves of the keepaway learners (``experiment/learners/keepaway_sarsa.py``) and the browser
+trainer's page (``interactive/keepaway_live.py``) are read from here: durations, hold shares and decisions per
+keeper, per learner, over windows of simulated time or of episodes.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from hfrl_torch.common.stats import summarize
+
+CYCLES_PER_SECOND = 10
+CYCLES_PER_MINUTE = 60 * CYCLES_PER_SECOND
+CYCLES_PER_HOUR = 3600 * CYCLES_PER_SECOND
+
+
+class KeepawayRecords:
+    """Every finished episode of every field, each field's simulated clock and each learner's (the sum
+    of its ``fields_per_learner`` fields' clocks; field f belongs to learner f // fields_per_learner).
+
+    One row per episode: field, ordinal (its number within the learner), the learner's clock at its end
+    (cycles), duration (cycles), HoldBall decisions, then the decisions of each keeper.
+    """
+
+    FIELD, ORDINAL, END, DURATION, HOLDS = range(5)
+
+    def __init__(self, fields: int, keepers: int, fields_per_learner: int = 1) -> None:
+        if fields < 1 or fields_per_learner < 1 or fields % fields_per_learner:
+            raise ValueError(f"{fields} fields do not split into learners of {fields_per_learner} fields")
+        self.fields, self.keepers, self.fields_per_learner = fields, keepers, fields_per_learner
+        self.learners = fields // fields_per_learner
+        self.finished_cycles = torch.zeros(fields, dtype=torch.int64)  # clock at the current episode's start
+        self.clock = torch.zeros(fields, dtype=torch.int64)
+        self.episodes = torch.zeros(self.learners, dtype=torch.int64)
+        self.holds = torch.zeros(fields, dtype=torch.int64)  # of the episode in progress
+        self.decisions = torch.zeros(fields, keepers, dtype=torch.int64)  # of the episode in progress
+        self._rows: list[torch.Tensor] = [torch.zeros(0, 5 + keepers, dtype=torch.int64)]
+
+    @property
+    def table(self) -> torch.Tensor:
+        """All rows [E, 5 + keepers] int64, in the order the episodes ended."""
+        if len(self._rows) > 1:
+            self._rows = [torch.cat(self._rows)]
+        return self._rows[0]
+
+    @property
+    def learner_clock(self) -> torch.Tensor:
+        """Simulated cycles of each learner [L]: its fields' clocks summed."""
+        return self.clock.view(self.learners, self.fields_per_learner).sum(1)
+
+    def learner_of(self, fields: torch.Tensor) -> torch.Tensor:
+        """The learner of each field index in ``fields``."""
+        return torch.div(fields, self.fields_per_learner, rounding_mode="floor")
+
+    def decided(self, fields: torch.Tensor, keeper: torch.Tensor, action: torch.Tensor) -> None:
+        """Count one decision of ``keeper`` [M] (action [M]) on each of the distinct ``fields`` [M]."""
+        fields = fields.cpu()
+        self.decisions[fields, keeper.cpu()] += 1
+        self.holds[fields] += (action.cpu() == 0).long()
+
+    def advance(self, episode_cycles: torch.Tensor) -> None:
+        """Set the clocks from the cycles [B] of the episodes in progress (or just ended)."""
+        self.clock = self.finished_cycles + episode_cycles.cpu()
+
+    def finish(self, ended: torch.Tensor, durations: torch.Tensor) -> None:
+        """Record the episodes that ended on fields ``ended`` [B] with ``durations`` [B] cycles; call
+        :meth:`advance` with the same step's cycles first, so that the learners' clocks include them."""
+        rows = ended.cpu().nonzero().squeeze(-1)
+        duration = durations.cpu()[rows]
+        learner = self.learner_of(rows)
+        _, counts = torch.unique_consecutive(learner, return_counts=True)  # rows ascending: learners too
+        starts = torch.repeat_interleave(counts.cumsum(0) - counts, counts)
+        ordinal = self.episodes[learner] + torch.arange(rows.numel()) - starts
+        self.finished_cycles[rows] += duration
+        self.clock[rows] = self.finished_cycles[rows]
+        end = self.learner_clock[learner]
+        row = torch.cat(
+            (torch.stack((rows, ordinal, end, duration, self.holds[rows]), 1), self.decisions[rows]), 1
+        )
+        self._rows.append(row)
+        self.episodes.index_add_(0, learner, torch.ones_like(learner))
+        self.holds[rows] = 0
+        self.decisions[rows] = 0
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        """Tensors that restore the records (the episodes in progress are not kept)."""
+        return {"rows": self.table.clone(), "clock": self.clock.clone(), "episodes": self.episodes.clone()}
+
+    def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
+        """Continue after the saved records, with fresh episodes starting at the saved clocks."""
+        if state["clock"].shape != self.clock.shape or state["episodes"].shape != self.episodes.shape:
+            raise ValueError(
+                f"records of {state['clock'].numel()} fields / {state['episodes'].numel()} learners cannot "
+                f"continue as {self.fields} fields / {self.learners} learners"
+            )
+        self._rows = [state["rows"].clone()]
+        self.clock = state["clock"].clone()
+        self.finished_cycles = state["clock"].clone()
+        self.episodes = state["episodes"].clone()
+        self.holds.zero_()
+        self.decisions.zero_()
+
+    def summary(self, rows: torch.Tensor) -> dict[str, float]:
+        """Episode duration over learners (each learner's mean in seconds over its fields' episodes,
+        then mean and 95 % interval over learners), HoldBall share and decisions per episode of each
+        keeper, for the episodes ``rows``."""
+        table = rows.double()
+        learner = self.learner_of(rows[:, self.FIELD])
+        count = torch.bincount(learner, minlength=self.learners)
+        total = torch.zeros(self.learners, dtype=torch.float64).index_add_(
+            0, learner, table[:, self.DURATION]
+        )
+        seen = count > 0
+        per_learner = total[seen] / count[seen] / CYCLES_PER_SECOND
+        s = summarize(per_learner, floor=0.0)
+        decisions = table[:, 5:]
+        out = {
+            "episode_s_mean": s["mean"],
+            "episode_s_ci95_low": s["ci95_low"],
+            "episode_s_ci95_high": s["ci95_high"],
+            "episode_s_median_of_learners": s["median"],
+            "learners": float(s["n"]),
+            "episodes": float(table.shape[0]),
+            "hold_share": float(table[:, self.HOLDS].sum() / decisions.sum().clamp(min=1)),
+        }
+        for k in range(self.keepers):
+            out[f"decisions_per_episode_keeper{k}"] = float(decisions[:, k].mean())
+        return out
+
+    def time_window(self, start: int, stop: int) -> dict[str, float] | None:
+        """Summary of the episodes that ended at learner clock [start, stop) cycles (None if none did)."""
+        t = self.table
+        rows = t[(t[:, self.END] >= start) & (t[:, self.END] < stop)]
+        return self.summary(rows) if rows.shape[0] else None
+
+    def episode_window(self, start: int, stop: int) -> dict[str, float]:
+        """Summary of every learner's episodes number start..stop-1."""
+        t = self.table
+        return self.summary(t[(t[:, self.ORDINAL] >= start) & (t[:, self.ORDINAL] < stop)])

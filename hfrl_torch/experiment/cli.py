@@ -1,0 +1,130 @@
+"""What ``train.py`` and ``evaluate.py`` do before Hydra runs: check every job's config, with one-line errors.
+
+Hydra's own command line is left as Hydra parses it (``--cfg job|hydra|all``, ``--resolve``, ``--package``,
+``--info``, ``--help``, ``-m``): :func:`precheck` reads it with Hydra's own argument parser, composes the
+config of every job a command would run (each combination of a basic sweep, the sweeps an experiment config
+declares included) and validates each before Hydra creates a directory. A bad value stops the command with
+``error: <one line>`` and exit status 2, and nothing is written.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+from hydra import compose, initialize_config_dir
+from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+from hydra._internal.utils import get_args_parser
+from hydra.core.override_parser.overrides_parser import OverridesParser
+from omegaconf import DictConfig, OmegaConf
+
+from hfrl_torch.common.checkpoint import load_checkpoint
+from hfrl_torch.common.errors import UserError
+from hfrl_torch.experiment import resolvers  # noqa: F401  (the config's resolvers, before any composing)
+from hfrl_torch.experiment.config import resume_config
+
+CONF_DIR = Path(__file__).resolve().parent.parent.parent / "conf"
+CHECKED = "HFRL_TORCH_CHECKED"  # set once every job of this command was checked up front
+_HYDRA_FLAGS = ("help", "hydra_help", "version", "cfg", "info", "shell_completion", "experimental_rerun")
+
+
+def check_group_choices(overrides: list[str], conf_dir: Path = CONF_DIR) -> None:
+    """Exit with one line if a ``group=option`` names an option that does not exist (Hydra's own message
+    spans several lines and a hint; this one names the value and the allowed ones)."""
+    for arg in overrides:
+        if "=" not in arg:
+            continue
+        key, _, value = arg.lstrip("+~").partition("=")
+        group_dir = conf_dir / key
+        if "." in key or "/" in key or not group_dir.is_dir():
+            continue
+        names = sorted(p.stem for p in group_dir.glob("*.yaml"))
+        shown = [n for n in names if not n.startswith("default_")]
+        for choice in value.split(","):  # a sweep lists several
+            if choice not in names:
+                fail(f"unknown {key} {choice!r}; allowed: {', '.join(shown)}")
+
+
+def job_overrides(overrides: list[str], config_name: str, multirun: bool) -> tuple[list[list[str]], bool]:
+    """The overrides of every job the command runs, and whether that is all of them: one job, or each
+    combination of a basic sweep (the command line's and the ``hydra.sweeper.params`` of the composed
+    config); a sampling sweeper (Optuna) is represented by its base job, its sampled values being checked by
+    each job itself."""
+    if not multirun:
+        return [overrides], True
+    parser = OverridesParser.create()
+    parsed = parser.parse_overrides(overrides)
+    base = [o.input_line for o in parsed if not o.is_sweep_override()]
+    hydra_cfg = _compose(config_name, base, hydra=True).hydra
+    if not str(OmegaConf.select(hydra_cfg, "sweeper._target_", default="")).endswith("BasicSweeper"):
+        return [base], False
+    params = OmegaConf.select(hydra_cfg, "sweeper.params", default=None) or {}
+    declared = [f"{k}={v}" for k, v in params.items()]
+    return BasicSweeper.split_arguments(parser.parse_overrides(declared + overrides), None)[0], True
+
+
+def _compose(config_name: str, overrides: list[str], hydra: bool = False) -> DictConfig:
+    task = overrides if hydra else [o for o in overrides if not o.lstrip("+~").startswith("hydra")]
+    with initialize_config_dir(str(CONF_DIR), version_base=None):
+        return compose(config_name, overrides=task, return_hydra_config=hydra)
+
+
+def precheck(argv: list[str], config_name: str, validate: Callable[[DictConfig], None]) -> None:
+    """Check every job of this command line before Hydra runs it (see the module docstring)."""
+    try:
+        args = get_args_parser().parse_args(argv)
+    except SystemExit:
+        return  # a malformed command line: Hydra says what is wrong with it
+    if any(getattr(args, flag, None) for flag in _HYDRA_FLAGS):
+        return  # Hydra's own flags print or inspect the config; they run nothing
+    check_group_choices(args.overrides)
+    try:
+        jobs, complete = job_overrides(args.overrides, config_name, bool(args.multirun))
+        for i, job in enumerate(jobs):
+            cfg = _compose(config_name, job)
+            if cfg.get("resume"):
+                checkpoint = load_checkpoint(cfg.resume)
+                cfg = resume_config(cfg, Path(cfg.resume), checkpoint, job)
+            try:
+                validate(cfg)
+            except (UserError, ValueError) as exc:
+                where = f"job {i} ({' '.join(job)}): " if len(jobs) > 1 else ""
+                fail(where + str(exc).splitlines()[0])
+    except UserError as exc:
+        fail(str(exc).splitlines()[0])
+    except Exception as exc:  # Hydra raises several types; all mean the command line is wrong
+        fail(" ".join(str(exc).strip().splitlines()[:2]) or type(exc).__name__)
+    if complete:  # every job the launcher will run was checked here
+        os.environ[CHECKED] = "1"
+
+
+def checked() -> bool:
+    """Whether this command's jobs were checked up front (else the job checks its own config)."""
+    return os.environ.get(CHECKED) == "1"
+
+
+def fail(message: str) -> None:
+    """Print ``error: message`` on stderr and exit with status 2."""
+    print(f"error: {message}", file=sys.stderr)
+    sys.exit(2)
+
+
+def guarded(fn: Callable[..., object]) -> Callable[..., object]:
+    """Run ``fn`` turning a :class:`UserError` into one ``error:`` line and exit status 2."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: object, **kwargs: object) -> object:
+        try:
+            return fn(*args, **kwargs)
+        except UserError as exc:
+            fail(str(exc))
+        except ValueError as exc:  # invalid values caught by constructors (rules, feature sets)
+            if "\n" in str(exc) or not str(exc):
+                raise
+            fail(str(exc))
+        return None
+
+    return wrapper

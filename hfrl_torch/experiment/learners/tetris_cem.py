@@ -1,0 +1,363 @@
+"""The cross-entropy method on Tetris, alone or taught by a trainer (thesis Figures 3.6 and 4.1).
+
+``train.py agent=cem`` (``trainer=none``): each iteration samples a population of linear afterstate values,
+plays their games in compiled code, refits the Gaussian to the elite, then tests the mean weights on fresh
+games (the curve).
+
+With a trainer (``fusion=<scheme> trainer=<t>``, the combined learner), one iteration is one episode of the
+fusion, in four parts:
+
+1. **Watch.** The fused mean policy plays one game (at most ``agent.watch_pieces`` placements) on a
+   ``TetrisEnv`` wrapped in ``FeedbackFusion``: at each placement the feedback due on the simulated clock
+   comes out of the channel into the tensordict and H^ (TAMER) learns from it; R (the CE value) and H^ of
+   every placement go through the fusion component, which chooses; the trainer judges the placement and its
+   events go into the channel and the feedback log. One trainer watches one board, as a person would.
+2. **CE step.** Every candidate plays its games acting on its own R fused with H^ by the same component (its
+   compiled twin), so the elite are the weights that work best together with what the trainer taught.
+3. **Test.** The fused mean policy plays ``agent.eval_games`` fresh games: their lines are the learning
+   curve, and their placements' match count is the m of the trust factor.
+4. **Weight.** The fusion ends its episode: eq. 4.4 folds in (lines, m) for the trust factor; the annealed
+   weight decays by its factor; a fixed weight stays.
+
+Every random draw of iteration t (CE, games, trainer, control-sharing coins) is seeded from (seed, t) or
+restored from the checkpoint, so a resumed run continues as if never stopped; feedback events are appended
+to ``feedback.jsonl`` as they are given, so a crash loses none of them.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+from omegaconf import DictConfig
+from tensordict import TensorDictBase
+from torchrl.envs import TransformedEnv
+from tqdm import tqdm
+
+from hfrl_torch import keys
+from hfrl_torch.agents.cem import CrossEntropyMethod
+from hfrl_torch.agents.cem.cem import _derived_seed
+from hfrl_torch.agents.cem.fused_rollout import FusedRollout
+from hfrl_torch.agents.tamer.tamer import placement_deltas
+from hfrl_torch.common.errors import CheckpointError
+from hfrl_torch.common.logger import Logger
+from hfrl_torch.common.stats import summarize
+from hfrl_torch.envs.tetris.env import TetrisEnv
+from hfrl_torch.envs.tetris.features import feature_id, feature_names
+from hfrl_torch.experiment.factories import (
+    make_cem_config,
+    make_fusion,
+    make_live_teaching,
+    make_rollout,
+    make_rules,
+    make_tamer,
+    make_trainer,
+    warm_up,
+)
+from hfrl_torch.experiment.learners.tetris_games import TRAINER_LABELS
+from hfrl_torch.experiment.run import Learner, Point
+from hfrl_torch.feedback.channel import FeedbackChannel
+from hfrl_torch.feedback.log import FeedbackLog
+from hfrl_torch.fusion.transform import FeedbackFusion, FusionModule
+from hfrl_torch.interactive.live import LiveTeaching
+from hfrl_torch.interactive.tetris_live import LATE_FEEDBACK_S, tetris_frame
+
+
+class CEMLearner(Learner):
+    """Noisy CE over the weights of a linear afterstate value, with or without a trainer."""
+
+    agent = "cem"
+    unit = "it"
+    x_key = "iteration"
+
+    def __init__(self, cfg: DictConfig, run_dir: Path, checkpoint: dict[str, Any] | None = None) -> None:
+        super().__init__(cfg, run_dir, checkpoint)
+        self.rules = make_rules(cfg)
+        self.names = feature_names(feature_id(cfg.domain.features), self.rules.width)
+        self.taught = cfg.trainer.name != "none"
+        self.teaching: LiveTeaching | None = None
+        self.log: FeedbackLog | None = None
+        if self.taught:
+            self._build_feedback(cfg, run_dir)
+            rollout = FusedRollout(
+                self.rules, cfg.domain.features, cfg.human.features, self.fusion, cfg.domain.max_pieces
+            )
+        else:
+            rollout = make_rollout(cfg)
+        self.rollout = rollout
+        self.cem = CrossEntropyMethod(len(self.names), make_cem_config(cfg), rollout, seed=cfg.seed)
+        if checkpoint is not None:
+            self._load(checkpoint["state"])
+
+    def _build_feedback(self, cfg: DictConfig, run_dir: Path) -> None:
+        h = cfg.human
+        self.fusion = make_fusion(cfg, 1)
+        self.human_names = feature_names(feature_id(h.features), self.rules.width)
+        self.human = make_tamer(cfg, 1, len(self.human_names))
+        self.channel = FeedbackChannel(1)
+        self.clock = 0.0
+        self.log = FeedbackLog(run_dir / "feedback.jsonl", session=run_dir.name)
+        if cfg.trainer.name == "interactive":
+            self.teaching = make_live_teaching(cfg, self.log, view="tetris")
+            self.trainer = self.teaching.trainer
+            self.who = "a person in the browser (human:browser)"
+        else:
+            self.trainer = make_trainer(cfg, self.log)
+            source = (
+                self.trainer.source if self.trainer.source != "trainer" else f"simulated:{cfg.trainer.name}"
+            )
+            self.who = f"{source} (trainer={cfg.trainer.name}; a simulated or replayed trainer, not a person)"
+        self.watched = TransformedEnv(
+            TetrisEnv(batch=1, rules=self.rules, features=h.features, max_pieces=cfg.agent.watch_pieces),
+            FeedbackFusion(self.fusion),
+        )
+        self.choose = FusionModule(self.fusion, select="greedy", count=False)
+
+    @property
+    def total(self) -> float:
+        return int(self.cfg.agent.iterations)
+
+    @property
+    def position(self) -> float:
+        return self.cem.iteration
+
+    @property
+    def description(self) -> str:
+        scheme = f"+{self.cfg.fusion.name}" if self.taught else ""
+        return f"CE{scheme} {self.rules.width}x{self.rules.height}"
+
+    def start(self, logger: Logger) -> None:
+        warm_up(self.cfg)
+        if not self.resumed:
+            r = self.rules
+            logger.text(
+                "rules", f"{r.describe()}, board {r.width}x{r.height}, features {self.cfg.domain.features}"
+            )
+            if self.taught:
+                logger.text("trainer", f"{self.who}, fusion={self.cfg.fusion.name}")
+        if self.teaching is not None:
+            wait = float(self.cfg.trainer.wait_for_page_s)
+            tqdm.write(f"Teach the agent in your browser: {self.teaching.url}", file=sys.stderr)
+            if wait > 0 and not self.resumed and self.cem.iteration == 0:
+                tqdm.write(f"Waiting up to {wait:g} s for the page to open...", file=sys.stderr)
+                if not self.teaching.session.wait_for_page(wait):
+                    tqdm.write(
+                        "No page opened: learning from the game alone until one does.", file=sys.stderr
+                    )
+
+    # -------------------------------------------------------------------- iterate
+
+    def advance(self) -> list[Point]:
+        t = self.cem.iteration
+        t0 = time.perf_counter()
+        metrics: dict[str, float] = {}
+        if self.taught:
+            weight = float(self.fusion.weight()[0])  # 0 for none and human_only
+            self.fusion.generator.manual_seed(_derived_seed(self.cfg.seed, t, 4))
+            watched = self.watch_game(_derived_seed(self.cfg.seed, t, 3), t)
+            live = self.teaching.session if self.teaching is not None else None
+            if live is not None:
+                live.publish({"type": "status", "text": f"practising on its own (CE iteration {t + 1})"})
+            self.rollout.human_weights = self.human.model.weight[0].detach().clone()
+        metrics.update(self.cem.step())
+        eval_lines = self.cem.evaluate_mean()
+        ev = summarize(eval_lines, floor=0.0)
+        elapsed = time.perf_counter() - t0
+        metrics.update(
+            {
+                "eval/mean_policy_lines_mean": ev["mean"],
+                "eval/mean_policy_lines_median": ev["median"],
+                "eval/mean_policy_lines_ci95_low": ev["ci95_low"],
+                "eval/mean_policy_lines_ci95_high": ev["ci95_high"],
+                "eval/capped_games": self.cem.last_eval_capped,
+            }
+        )
+        if self.taught:
+            games = self.rollout.last
+            self.fusion.count_matches(torch.zeros_like(games.matches), games.matches, games.compared)
+            m = float(self.fusion.matches.rates()[0])
+            self.fusion.end_episode(performance=ev["mean"])
+            metrics.update(
+                {
+                    "episode/env_return": watched["env_return"],
+                    "episode/fused_return": watched["fused_return"],
+                    "episode/placements": watched["placements"],
+                    "feedback/given": watched["given"],
+                    "feedback/positive_share": watched["positive"] / watched["given"]
+                    if watched["given"]
+                    else 0.0,
+                    "feedback/trainer_present": float(watched["given"] > 0),
+                    "feedback/learned_total": float(self.human.applied.sum()),
+                    "fusion/weight": weight,
+                    "fusion/weight_next": float(self.fusion.weight()[0]),
+                    "fusion/match_rate": m,
+                    "time/iteration_s": elapsed,
+                }
+            )
+            if self.teaching is not None:
+                self.teaching.session.add_point(self.cem.iteration, ev["mean"])
+        else:
+            placements = metrics["population/placements"] + self.cem.last_eval_pieces
+            metrics.update(
+                {"time/placements_per_s": placements / max(elapsed, 1e-9), "time/iteration_s": elapsed}
+            )
+        step = self.cem.iteration
+        return [Point({"iteration": step, **metrics}, step)]
+
+    def watch_game(self, game_seed: int, episode: int) -> dict[str, float]:
+        """The trainer watches the fused mean policy play one game; H^ learns from every event. Returns its totals.
+
+        The game's last events, which arrive after its last placement, are learned too (they credit its last
+        placements). With a person in the browser the game runs on the wall clock at the page's speed, every
+        placement is shown on the page, and the game stops early if the person leaves.
+        """
+        env, live = self.watched, self.teaching.session if self.teaching is not None else None
+        n_env = self.cem.mean.numel()
+        env.set_seed(game_seed)  # a TransformedEnv passes no reset_game_seed down: seed the env's own draw
+        td = env.reset()
+        totals = {"env_return": 0.0, "fused_return": 0.0, "placements": 0.0, "given": 0.0, "positive": 0.0}
+        now = self.clock
+        episode_t = torch.tensor([episode])
+        while True:
+            if live is not None:
+                if not live.teaching():
+                    break
+                now = live.wait_turn()
+            self._learn_due(td, now)
+            feats = td[keys.AFTERSTATE_FEATURES][..., :n_env].to(torch.float64)
+            td.set(keys.ENV_VALUES, (feats * self.cem.mean).sum(-1))
+            td.set(keys.HUMAN_VALUES, self.human.model(placement_deltas(td)))
+            action = self.choose(td).get(keys.ACTION)
+            events = self.trainer.give(td, action, now, episode_t)
+            self.human.record(td, action, now)
+            self.channel.put_events(events)
+            self._count(totals, events)
+            td.set(
+                keys.HUMAN_REWARD_ESTIMATE,
+                td[keys.HUMAN_VALUES].gather(1, action.view(1, 1)).to(torch.float32),
+            )
+            td = env.step(td)
+            nxt = td["next"]
+            if live is not None:
+                live.publish(tetris_frame(td, episode, weight=float(td[keys.FUSION_WEIGHT].reshape(-1)[0])))
+            totals["env_return"] += float(nxt[keys.ENV_REWARD].sum())
+            totals["fused_return"] += float(nxt[keys.REWARD].sum())
+            totals["placements"] += 1
+            now += float(self.cfg.human.seconds_per_placement)
+            if bool(nxt[keys.DONE].any()):
+                self.trainer.end_games(nxt[keys.DONE].view(-1), nxt[keys.LINES].view(-1))
+                break
+            td = td["next"]
+        if live is not None and totals["placements"] > 0:  # feedback on the last placements is on its way
+            live.sleep(LATE_FEEDBACK_S)
+            late = self.trainer.give(td, torch.zeros(1, dtype=torch.int64), live.clock(), episode_t)
+            self.channel.put_events(late)
+            self._count(totals, late)
+        while self.channel.pending:
+            self.human.learn(self.channel.deliver(math.inf))
+        self.clock = now
+        return totals
+
+    def _learn_due(self, td: TensorDictBase, now: float) -> None:
+        td.update(self.channel.deliver(now))
+        self.human.learn(td)
+
+    @staticmethod
+    def _count(totals: dict[str, float], events: list[list[Any]]) -> None:
+        totals["given"] += float(sum(len(e) for e in events))
+        totals["positive"] += float(sum(ev.value > 0 for e in events for ev in e))
+
+    def postfix(self, point: Point) -> dict[str, str]:
+        r = point.record
+        out = {"eval_lines": f"{r['eval/mean_policy_lines_mean']:.1f}"}
+        if self.taught:
+            m = r["fusion/match_rate"]
+            out.update(
+                w=f"{r['fusion/weight']:.2f}",
+                m="-" if math.isnan(m) else f"{m:.2f}",
+                fb=f"{r['feedback/given']:.0f}",
+            )
+        else:
+            out.update(pop_lines=f"{r['population/lines_mean']:.1f}", noise=f"{r['cem/noise']:.2f}")
+        return out
+
+    # ---------------------------------------------------------------- checkpoints
+
+    def checkpoint(self) -> dict[str, Any]:
+        policy: dict[str, Any] = {
+            "kind": "linear",
+            "features": self.cfg.domain.features,
+            "feature_names": self.names,
+            "weights": self.cem.mean.clone(),
+        }
+        if not self.taught:
+            return {"state": self.cem.state_dict(), "policy": policy, "rules": self.rules.as_dict()}
+        state = {
+            "cem": self.cem.state_dict(),
+            "human": self.human.learner_state(),
+            "fusion": self.fusion.state_dict(),
+            "trainer": self.trainer.state_dict(),
+            "channel": self.channel.state_dict(),
+            "clock": self.clock,
+        }
+        policy.update(
+            kind="fused",
+            scheme=self.fusion.decision,
+            weight=float(self.fusion.weight()[0]),
+            normalise=self.fusion.scaling == "decision",
+            human_features=self.cfg.human.features,
+            human_weights=self.human.model.weight[0].detach().clone(),
+        )
+        return {"state": state, "policy": policy, "rules": self.rules.as_dict()}
+
+    def _load(self, state: dict[str, Any]) -> None:
+        try:
+            if not self.taught:
+                self.cem.load_state_dict(state)
+                return
+            self.cem.load_state_dict(state["cem"])
+            self.human.load_learner_state(state["human"])
+            self.fusion.load_state_dict(state["fusion"])
+            self.trainer.load_state_dict(state["trainer"])
+            self.channel.load_state_dict(state["channel"])
+            self.clock = float(state["clock"])
+        except (KeyError, RuntimeError, TypeError, ValueError) as e:
+            raise CheckpointError(f"checkpoint of {self.run_dir} is not this CE run's ({e!r})") from None
+
+    # ------------------------------------------------------------------- results
+
+    def report(self, final: dict[str, Any]) -> list[str]:
+        low, high = final["eval/mean_policy_lines_ci95_low"], final["eval/mean_policy_lines_ci95_high"]
+        lines = [
+            f"Done: mean policy {final['eval/mean_policy_lines_mean']:.1f} lines per game (95% CI {low:.1f}..{high:.1f})"
+        ]
+        if self.taught:
+            who = TRAINER_LABELS.get(self.cfg.trainer.name, self.cfg.trainer.name)
+            lines.append(
+                f"Feedback:         {final['feedback_events']:.0f} events of the {who} "
+                f"(fusion={self.cfg.fusion.name}, weight on H^ now {final['fusion/weight_next']:.2f})"
+            )
+            lines.append(f"Feedback log:     {self.log.path}")
+        return lines
+
+    def final(self) -> dict[str, Any]:
+        final = super().final()
+        if final and self.taught:
+            final["feedback_events"] = float(sum(r["feedback/given"] for r in self.history))
+        return final
+
+    def score(self, final: dict[str, Any]) -> float | None:
+        return final.get("eval/mean_policy_lines_mean")
+
+    def hparam_metrics(self, final: dict[str, Any]) -> dict[str, float]:
+        return {"hparam/eval_lines_mean": final["eval/mean_policy_lines_mean"]}
+
+    def close(self) -> None:
+        if self.teaching is not None:
+            self.teaching.stop()
+        if self.log is not None:
+            self.log.close()

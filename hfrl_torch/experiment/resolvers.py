@@ -1,0 +1,49 @@
+"""The config's own resolvers: the choices a config implies, computed inside it so that they hold in sweeps.
+
+Registered once, on import, before Hydra composes anything (``train.py`` and ``evaluate.py`` import this
+package). ``python train.py --cfg job`` shows them as written; ``--resolve`` shows what they give.
+
+- ``${implied_trainer:<fusion>}``: the trainer of ``trainer=auto`` (the default): the simulated oracle
+  when the fusion scheme needs a trainer, none otherwise.
+- ``${decision_period:<trainer>}``: keepaway holders decide every cycle (100 ms, the reference) without
+  a trainer and every 5 cycles (500 ms, the thesis's human-feedback setting) when one watches.
+- ``${run_dir:<resume>,<new>}``: where Hydra writes a run's files: a new run's own directory, or, when
+  resuming, ``<resume>/resume-logs/<date>_<time>`` inside the resumed run.
+"""
+
+from __future__ import annotations
+
+import time
+
+from omegaconf import OmegaConf
+
+RESOLVERS = ("implied_trainer", "decision_period", "run_dir")
+
+
+def implied_trainer(fusion: str) -> str:
+    """``none`` for ``fusion=none``, else ``oracle`` (a fusion fuses a trainer's H^ with the environment)."""
+    return "none" if fusion == "none" else "oracle"
+
+
+def decision_period(trainer: str) -> int:
+    """Cycles between a keepaway holder's decisions: 1 without a trainer, 5 when one watches."""
+    return 1 if trainer in (None, "none") else 5
+
+
+def run_dir(resume: str | None, new: str) -> str:
+    """``new`` for a new run; ``<resume>/resume-logs/<now>`` for a resumed one."""
+    if resume in (None, "", "null"):
+        return new
+    return f"{resume}/resume-logs/{time.strftime('%Y-%m-%d_%H-%M-%S')}"
+
+
+def register() -> None:
+    """Register the resolvers (idempotent)."""
+    for name, fn in (("implied_trainer", implied_trainer), ("decision_period", decision_period)):
+        if not OmegaConf.has_resolver(name):
+            OmegaConf.register_new_resolver(name, fn)
+    if not OmegaConf.has_resolver("run_dir"):  # cached: a run's directory is fixed once it is named
+        OmegaConf.register_new_resolver("run_dir", run_dir, use_cache=True)
+
+
+register()
