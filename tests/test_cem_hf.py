@@ -15,7 +15,8 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from hfrl_torch.common.checkpoint import load_checkpoint
-from hfrl_torch.experiment.tetris_cem_hf import train_cem_hf
+from hfrl_torch.experiment.learners.tetris_cem import CEMLearner
+from hfrl_torch.experiment.run import RunFiles, learn
 from hfrl_torch.feedback.log import load_feedback_log
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -33,6 +34,11 @@ TINY = [
 def _cfg(*overrides: str):
     with initialize_config_dir(str(ROOT / "conf"), version_base=None):
         return compose("train", overrides=[*TINY, *overrides])
+
+
+def train_cem_hf(cfg, run_dir: Path, checkpoint: dict | None) -> dict:
+    """CE + a trainer through train.py's loop (no Hydra run directory)."""
+    return learn(CEMLearner(cfg, run_dir, checkpoint), RunFiles(run_dir, cfg))
 
 
 def _events(run_dir: Path) -> list[tuple]:

@@ -137,8 +137,8 @@ def test_resume_refuses_changes_that_redefine_the_run(trained, tmp_path):
     out = run("train.py", f"resume={trained}", "domain.features=dt", "agent.iterations=4")
     assert out.returncode == 2
     assert "domain.features=dt cannot change when resuming" in out.stderr
-    allowed = "allowed: agent.iterations, agent.hours, agent.episodes, threads, device, domain.kernels, "
-    allowed += "logger.backend"
+    allowed = "allowed: agent.iterations, agent.hours, agent.episodes, agent.games, threads, device, "
+    allowed += "domain.kernels, logger.backend"
     assert allowed in out.stderr
 
 
@@ -147,7 +147,8 @@ def test_keepaway_with_a_simulated_trainer_then_evaluate_its_checkpoint(tmp_path
     small = ["agent.learners=2", "agent.table_bits=12", "agent.hours=0.004", "agent.log_minutes=0.1"]
     out = run("train.py", "domain=keepaway", "fusion=linear", *small, f"hydra.run.dir={run_dir}")
     assert out.returncode == 0, out.stderr[-2000:]
-    assert "Implied by the command line: agent=sarsa human=tile_coded trainer=oracle" in out.stderr
+    # the choices domain=keepaway and fusion=linear imply, made by the config and named by train.py
+    assert "Choices: domain=keepaway agent=sarsa human=tile_coded fusion=linear trainer=oracle" in out.stderr
     assert "events of the simulated oracle trainer (fusion=linear" in out.stderr
     assert f"Curves:           {run_dir / 'metrics.jsonl'}" in out.stderr
     assert f"evaluate.py domain=keepaway policy={run_dir}" in out.stderr
@@ -155,3 +156,45 @@ def test_keepaway_with_a_simulated_trainer_then_evaluate_its_checkpoint(tmp_path
     assert ev.returncode == 0, ev.stderr[-2000:]
     result = json.loads(ev.stdout.strip().splitlines()[-1])
     assert result["episodes"] == 8 and result["teams"] == 2 and result["mean_s"] > 0
+
+
+# ------------------------------------------------------------------ Hydra's own flags
+
+
+@pytest.mark.parametrize(
+    ("args", "expect"),
+    [
+        (["--cfg", "job"], ["agent:", "name: cem", "trainer:", "name: ${implied_trainer:${fusion.name}}"]),
+        (["--cfg", "job", "--resolve", "domain=keepaway", "fusion=linear"], ["name: sarsa", "name: oracle"]),
+        (["--cfg", "hydra"], ["run:", "sweep:"]),
+        (["--cfg", "all"], ["hydra:", "agent:"]),
+        (["--cfg", "job", "--package", "agent", "domain=keepaway"], ["name: sarsa", "alpha: 0.125"]),
+        (["--info"], ["Hydra", "Defaults List"]),
+        (["--info", "defaults", "domain=keepaway"], ["agent/default_keepaway", "agent/sarsa"]),
+        (["--help"], ["== Configuration groups ==", "fusion:", "trainer:"]),
+    ],
+)
+def test_hydras_own_flags_work_as_users_type_them(args, expect, tmp_path):
+    out = run("train.py", *args, cwd=tmp_path)
+    assert out.returncode == 0, out.stderr[-2000:]
+    for text in expect:
+        assert text in out.stdout, (text, out.stdout[-2000:])
+    assert not list(tmp_path.iterdir())  # printing the config writes nothing
+
+
+def test_cfg_job_resolves_the_choices_the_config_implies():
+    out = run("train.py", "--cfg", "job", "--resolve", "domain=keepaway", "trainer=interactive")
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "learners: 1" in out.stdout and "decision_period_cycles: 5" in out.stdout
+    plain = run("train.py", "--cfg", "job", "--resolve", "domain=keepaway")
+    assert "learners: 10" in plain.stdout and "decision_period_cycles: 1" in plain.stdout
+
+
+def test_a_sweep_with_a_bad_job_stops_before_anything_is_written(tmp_path):
+    sweep = tmp_path / "sweep"
+    out = run("train.py", "-m", "agent.population=10,1", f"hydra.sweep.dir={sweep}")
+    assert out.returncode == 2 and not sweep.exists()
+    err = out.stderr.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: job 1 (") and "agent.population=1 is invalid" in err[0]
+    out = run("train.py", "-m", "fusion=linear,bogus", f"hydra.sweep.dir={sweep}")
+    assert out.returncode == 2 and "unknown fusion 'bogus'" in out.stderr and not sweep.exists()

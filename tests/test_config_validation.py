@@ -6,10 +6,11 @@ import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
 
-from hfrl_torch.app import CONF_DIR, check_group_choices
 from hfrl_torch.common.errors import ConfigError, UserError
-from hfrl_torch.experiment.evaluate import evaluate_tetris
-from hfrl_torch.experiment.factories import validate_train_config
+from hfrl_torch.experiment.cli import CONF_DIR, check_group_choices
+from hfrl_torch.experiment.config import check_kernels, validate_evaluate, validate_train
+from hfrl_torch.experiment.evaluate import evaluate_keepaway, evaluate_tetris
+from hfrl_torch.experiment.factories import make_keepaway_config, make_trainer
 
 
 def _cfg(name: str, *overrides: str) -> DictConfig:
@@ -18,7 +19,7 @@ def _cfg(name: str, *overrides: str) -> DictConfig:
 
 
 def test_defaults_are_valid():
-    validate_train_config(_cfg("train"))
+    validate_train(_cfg("train"))
 
 
 @pytest.mark.parametrize(
@@ -47,7 +48,7 @@ def test_defaults_are_valid():
         ("device=tpu", "device='tpu' is invalid; allowed: cpu, cuda, cuda:N"),
         ("threads=0", "threads=0 is invalid: must be an integer in 1..256"),
         ("logger.backend=wandb", "logger.backend='wandb' is invalid; allowed: tensorboard, none"),
-        ("fusion=linear", "fusion='linear' fuses the trainer's H^ with the environment; choose a trainer"),
+        ("fusion=linear trainer=none", "fusion='linear' fuses the trainer's H^ with the environment; choose a trainer"),
         (
             "fusion=linear trainer=oracle fusion.weight=-1",
             "fusion.weight=-1 is invalid: must be a finite number >= 0.0",
@@ -76,7 +77,7 @@ def test_defaults_are_valid():
 )
 def test_bad_values(override, message):
     with pytest.raises(ConfigError) as info:
-        validate_train_config(_cfg("train", *override.split()))
+        validate_train(_cfg("train", *override.split()))
     assert message in str(info.value) and "\n" not in str(info.value)
 
 
@@ -93,7 +94,7 @@ def test_unknown_group_option_names_the_allowed_ones(capsys):
 
 def test_evaluate_rejects_bad_values_and_plays_random():
     with pytest.raises(ConfigError, match="games=0 is invalid"):
-        evaluate_tetris(_cfg("evaluate", "games=0"), progress=False)
+        validate_evaluate(_cfg("evaluate", "games=0"))
     with pytest.raises(UserError, match="neither a checkpoint nor a run directory"):
         evaluate_tetris(_cfg("evaluate", "policy=/no/such/dir"), progress=False)
     res = evaluate_tetris(_cfg("evaluate", "policy=random", "games=20"), progress=False)
@@ -102,8 +103,10 @@ def test_evaluate_rejects_bad_values_and_plays_random():
 
 def test_keepaway_is_learned_by_sarsa_only():
     with pytest.raises(ConfigError, match=r"domain=keepaway agent=sarsa"):
-        validate_train_config(_cfg("train", "domain=keepaway"))
-    validate_train_config(_cfg("train", "domain=keepaway", "agent=sarsa"))
+        validate_train(_cfg("train", "domain=keepaway", "agent=cem"))
+    with pytest.raises(ConfigError, match=r"domain=tetris agent=sarsa"):
+        validate_train(_cfg("train", "agent=sarsa"))
+    validate_train(_cfg("train", "domain=keepaway"))  # the domain brings its learner: agent=sarsa
 
 
 @pytest.mark.parametrize(
@@ -118,16 +121,14 @@ def test_keepaway_is_learned_by_sarsa_only():
     ],
 )
 def test_keepaway_evaluate_bad_values(override, message):
-    from hfrl_torch.experiment.evaluate import evaluate_keepaway
-
     with pytest.raises(ConfigError) as info:
-        evaluate_keepaway(_cfg("evaluate", "domain=keepaway", override), progress=False)
+        cfg = _cfg("evaluate", "domain=keepaway", override)
+        validate_evaluate(cfg)
+        evaluate_keepaway(cfg, progress=False)
     assert message in str(info.value)
 
 
 def test_keepaway_evaluate_reports_the_issue_fields(tmp_path):
-    from hfrl_torch.experiment.evaluate import evaluate_keepaway
-
     gif = tmp_path / "episode.gif"
     cfg = _cfg("evaluate", "domain=keepaway", "policy=hold", "episodes=16", "domain.batch=16", f"gif={gif}")
     res = evaluate_keepaway(cfg, progress=False)
@@ -142,9 +143,9 @@ def test_keepaway_evaluate_reports_the_issue_fields(tmp_path):
 
 
 def test_keepaway_preset_given_as_a_number_on_the_command_line_is_accepted():
-    from hfrl_torch.experiment.evaluate import keepaway_config
-
-    assert keepaway_config(_cfg("evaluate", "domain=keepaway", "domain.preset=2005")).preset == "2005"
+    cfg = _cfg("evaluate", "domain=keepaway", "domain.preset=2005")
+    validate_evaluate(cfg)
+    assert make_keepaway_config(cfg).preset == "2005"
 
 
 @pytest.mark.parametrize(
@@ -167,20 +168,17 @@ def test_keepaway_preset_given_as_a_number_on_the_command_line_is_accepted():
             "trainer.mode='loud' is invalid; allowed: sign, scaled",
         ),
         (["trainer=replay"], "trainer=replay needs trainer.log=<feedback log file>"),
+        (["trainer=replay", "trainer.log=/no/such.jsonl"], "trainer.log='/no/such.jsonl' is not a file"),
     ],
 )
 def test_tamer_and_trainer_bad_values(overrides, message):
-    from hfrl_torch.experiment.factories import make_trainer
-
     cfg = _cfg("train", "agent=tamer", *overrides)
     with pytest.raises(ConfigError) as info:
-        validate_train_config(cfg)
-        make_trainer(cfg, None)
+        validate_train(cfg)
     assert message in str(info.value)
 
 
 def test_trainer_factory_builds_the_simulated_trainers():
-    from hfrl_torch.experiment.factories import make_trainer
     from hfrl_torch.trainers import HumanLikeTiming, OracleTrainer, ValueProxyTrainer
 
     oracle = make_trainer(_cfg("train", "agent=tamer", "trainer=oracle"), None)
@@ -194,12 +192,10 @@ def test_trainer_factory_builds_the_simulated_trainers():
 
 
 def test_numba_kernels_need_the_cpu():
-    from hfrl_torch.experiment.evaluate import keepaway_kernels
-
     cfg = _cfg("train", "domain=keepaway", "agent=sarsa", "domain.kernels=numba", "device=cuda")
     with pytest.raises(ConfigError) as info:
-        keepaway_kernels(cfg)
+        check_kernels(cfg)
     assert str(info.value) == (
         "domain.kernels='numba' runs on the CPU only, not device=cuda; use domain.kernels=auto or torch"
     )
-    assert keepaway_kernels(_cfg("train", "domain=keepaway", "agent=sarsa", "device=cuda")) == "auto"
+    assert check_kernels(_cfg("train", "domain=keepaway", "agent=sarsa", "device=cuda")) == "auto"

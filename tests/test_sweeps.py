@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from omegaconf import OmegaConf
 
 ROOT = Path(__file__).resolve().parent.parent
 TINY = [
@@ -128,3 +129,26 @@ def test_the_keepaway_experiment_config_sweeps_its_conditions(tmp_path):
     assert (tmp_path / "0" / "feedback.jsonl").exists() and (
         tmp_path / "1" / "checkpoints" / "last.pt"
     ).exists()
+
+
+def test_a_sweep_over_four_fusion_schemes_runs_four_keepaway_jobs_with_their_implied_choices(tmp_path):
+    out = _run(
+        "train.py",
+        "-m",
+        "domain=keepaway",
+        "fusion=none,linear,exponential,human_only",
+        "agent.learners=1",
+        "agent.hours=0.002",
+        "agent.table_bits=12",
+        "agent.log_minutes=0.05",
+        "logger=none",
+        f"hydra.sweep.dir={tmp_path}",
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    configs = [OmegaConf.load(tmp_path / str(i) / "config.yaml") for i in range(4)]
+    assert [c.fusion.name for c in configs] == ["none", "linear", "exponential", "human_only"]
+    assert {c.agent.name for c in configs} == {"sarsa"} and {c.human.name for c in configs} == {"tile_coded"}
+    # the trainer each scheme implies, inside the sweep: none for fusion=none, the simulated oracle otherwise
+    assert [c.trainer.name for c in configs] == ["none", "oracle", "oracle", "oracle"]
+    assert [c.domain.decision_period_cycles for c in configs] == [1, 5, 5, 5]
+    assert [(tmp_path / str(i) / "feedback.jsonl").exists() for i in range(4)] == [False, True, True, True]

@@ -54,6 +54,8 @@ def train(cfg: DictConfig) -> TrainResult:
     (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
 
     print(f"Run directory: {run_dir}  ({domain}, {agent}, threads={threads})", file=sys.stderr)
+    choices = " ".join(f"{g}={cfg[g].name}" for g in ("domain", "agent", "human", "fusion", "trainer"))
+    print(f"Choices: {choices}", file=sys.stderr)
     learner = learner_for(agent)(cfg, run_dir, checkpoint)
     files = RunFiles(run_dir, cfg)
     interrupt = Interrupt()

@@ -115,7 +115,7 @@ def test_person_presses_keys_and_the_learner_gets_them(tmp_path):
     assert rows[0]["feedback/given"] == 4 and rows[0]["feedback/learned_total"] == 4
     assert [r["feedback/trainer_present"] for r in rows[1:]] == [0.0, 0.0]  # page closed: no teacher
     state = load_checkpoint(run_dir)["state"]
-    assert torch.count_nonzero(torch.as_tensor(state["human_weights"])) > 0  # H^ learned from the person
+    assert torch.count_nonzero(torch.as_tensor(state["human"]["weight"])) > 0  # H^ learned from the person
 
 
 def test_person_teaches_the_keepers_in_the_browser(tmp_path):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import threading
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -11,18 +12,18 @@ from hydra import compose, initialize_config_dir
 from tensordict import TensorDict
 
 from hfrl_torch import keys
-from hfrl_torch.agents.sarsa.fused_keepers import FusedKeepers
 from hfrl_torch.agents.tamer.keeper_tamer import KeeperTamer
-from hfrl_torch.app import CONF_DIR, implied_overrides
 from hfrl_torch.common.errors import ConfigError
-from hfrl_torch.envs.keepaway import KeepawayConfig, KeepawayEnv
+from hfrl_torch.envs.keepaway import KeepawayConfig
+from hfrl_torch.envs.keepaway.records import KeepawayRecords
 from hfrl_torch.envs.keepaway.simulator import KeepawaySimulator
-from hfrl_torch.experiment.factories import validate_train_config
-from hfrl_torch.experiment.keepaway_sarsa import KeepawayRecords, make_sarsa_keepers, run_sarsa_keepers
+from hfrl_torch.experiment.cli import CONF_DIR
+from hfrl_torch.experiment.config import validate_train
+from hfrl_torch.experiment.learners import keepaway_sarsa
+from hfrl_torch.feedback.channel import FeedbackChannel
 from hfrl_torch.feedback.events import FeedbackEvent
 from hfrl_torch.feedback.log import FeedbackLog, load_feedback_log
-from hfrl_torch.fusion.schedules import ConstantWeight
-from hfrl_torch.interactive.keepaway_live import BrowserKeeperTrainer, KeepawayWatcher, watch_field
+from hfrl_torch.interactive.keepaway_live import BrowserKeeperTrainer, KeepawayWatcher
 from hfrl_torch.interactive.live import DEFAULT_SPEED
 from hfrl_torch.interactive.messages import Feedback, Presence
 from hfrl_torch.interactive.session import TeachingSession
@@ -78,19 +79,17 @@ def test_a_press_credits_the_decisions_in_its_window_in_h_hat():
     _, _, session = _fake_clock()
     trainer = BrowserKeeperTrainer(session)
     model = TileCoding([1.0, 1.0], num_actions=3, learners=1, tilings=4, size=2**12)
-    fk = FusedKeepers(
-        "linear", ConstantWeight([0.5]), KeeperTamer(model, 1, alpha=1.0), trainer, 3, torch.zeros(3).long()
-    )
+    tamer, channel = KeeperTamer(model, 1, alpha=1.0), FeedbackChannel(1)
     tiles = [model.tiles(torch.tensor([[x, x]]))[:, 0] for x in (0.0, 5.0, 10.0)]  # disjoint tiles
     for t, tile in zip((3.0, 4.5, 5.2), tiles, strict=True):
-        fk.decided(torch.tensor([0]), torch.tensor([0]), torch.tensor([0]), tile, torch.zeros(1, 13),
-                   torch.tensor([t]))  # fmt: skip
+        tamer.record(torch.tensor([True]), torch.tensor([0]), tile, torch.tensor([t]))
     trainer.timeline.shown(200.0, 5.1, 0, 2)
     _press(session, 200.3, 1.0)  # credited at 5.1 + 0.3 = 5.4 s: the 500 ms window reaches back to 4.9 s
-    fk.deliver(torch.tensor([5.6], dtype=torch.float64))
+    now = torch.tensor([5.6], dtype=torch.float64)
+    channel.put(*trainer.poll(now), trainer.source)
+    assert tamer.learn(channel.deliver(now)) == 2
     h = [model(torch.tensor([0]), tile).item() for tile in tiles]
     assert h[0] == 0.0 and h[1] > 0 and h[2] > 0  # the decision of 3.0 s ended at 4.5 s: no credit
-    assert fk.feedback.tolist() == [1] and fk.positive.tolist() == [1]
 
 
 def test_watcher_paces_while_taught_and_runs_free_when_nobody_watches():
@@ -128,13 +127,9 @@ def test_frame_has_what_the_page_draws_and_the_curve_gets_hold_times():
     _, _, session = _fake_clock()
     session.connect()
     records = KeepawayRecords(1, 3)
-    model = TileCoding([1.0, 1.0], num_actions=3, learners=1, tilings=4, size=2**12)
     trainer = BrowserKeeperTrainer(session)
-    human = FusedKeepers(
-        "linear", ConstantWeight([0.75]), KeeperTamer(model, 1), trainer, 3, torch.zeros(3).long()
-    )
     sim = KeepawaySimulator(1, CONFIG, seed=1)
-    watcher = KeepawayWatcher(trainer, records, CONFIG, human, curve_every=2)
+    watcher = KeepawayWatcher(trainer, records, CONFIG, lambda: 0.75, curve_every=2)
     watcher.attach(sim)
     for _ in range(3):
         sim.step(torch.tensor([1]))
@@ -152,7 +147,7 @@ def test_frame_has_what_the_page_draws_and_the_curve_gets_hold_times():
     assert json.loads(json.dumps(session.latest()[1]))["mean_hold_s"] == 7.0
 
 
-def test_a_taught_loop_learns_from_presses_at_real_time(tmp_path):
+def test_a_taught_loop_learns_from_presses_at_real_time(tmp_path, monkeypatch, run_learner):
     clock, _, session = _fake_clock(0.0)
     presses = [(3.0, 1.0), (6.0, -1.0), (9.0, 1.0)]
 
@@ -163,20 +158,12 @@ def test_a_taught_loop_learns_from_presses_at_real_time(tmp_path):
 
     session.sleep = sleep
     session.connect()
-    log = FeedbackLog(tmp_path / "feedback.jsonl", session="live")
-    agent = make_sarsa_keepers(CONFIG, 1, size=2**12)
-    model = TileCoding(agent.coder.widths.tolist(), 3, learners=1, tilings=32, size=2**12)
-    trainer = BrowserKeeperTrainer(session, log=log)
-    human = FusedKeepers(
-        "linear", ConstantWeight([0.5]), KeeperTamer(model, 1), trainer, 3, torch.zeros(3).long()
-    )
-    env = KeepawayEnv(1, CONFIG, seed=0, sync="any")
-    records = KeepawayRecords(1, 3)
-    watcher = watch_field(env, records, human)
-    run_sarsa_keepers(env, agent, records, cycles=150, human=human, watch=watcher)
+    page = SimpleNamespace(session=session, url="http://127.0.0.1/test", stop=lambda: None)
+    monkeypatch.setattr(keepaway_sarsa, "make_live_teaching", lambda cfg, log, view: page)
+    over = ["domain=keepaway", "trainer=interactive", "trainer.wait_for_page_s=0", "agent.table_bits=12"]
+    learner, _ = run_learner(tmp_path, *over, f"agent.hours={150 / 36000}", "fusion.weight=0.5")
     assert 14.85 <= clock[0] <= 17.0  # 150+ cycles at real time: the last step may run a few more
-    assert not presses and human.feedback.tolist() == [3] and model.weight.abs().sum() > 0
-    log.close()
+    assert not presses and learner.feedback.tolist() == [3] and learner.tamer.model.weight.abs().sum() > 0
     events = load_feedback_log(tmp_path / "feedback.jsonl")
     assert [e.value for e in events] == [1.0, -1.0, 1.0] and {e.source for e in events} == {"human:browser"}
     assert [e.time for e in events] == pytest.approx([3.1, 6.1, 9.1], abs=0.11)  # wall = sim, one frame late
@@ -184,35 +171,25 @@ def test_a_taught_loop_learns_from_presses_at_real_time(tmp_path):
 
 def _cfg(*overrides: str):
     with initialize_config_dir(str(CONF_DIR), version_base=None):
-        return compose("train", overrides=["domain=keepaway", "agent=sarsa", "human=tile_coded", *overrides])
+        return compose("train", overrides=["domain=keepaway", *overrides])
 
 
 def test_config_of_the_keepaway_browser_trainer():
-    assert implied_overrides(["domain=keepaway", "trainer=interactive"])[-1] == "agent.learners=1"
-    assert "agent.learners=1" not in implied_overrides(
-        ["domain=keepaway", "trainer=interactive", "agent.learners=4"]
-    )
-    cfg = _cfg("trainer=interactive", "agent.learners=1")
-    validate_train_config(cfg)
+    cfg = _cfg("trainer=interactive")
+    validate_train(cfg)
+    assert cfg.agent.learners == 1  # one person teaches one team: the config's own default
+    assert _cfg("trainer=interactive", "agent.learners=4").agent.learners == 4  # a value given wins (and fails)
     assert (
         cfg.fusion.name == "linear" and cfg.trainer.actions_per_s is None and DEFAULT_SPEED["keepaway"] == 2.0
     )
-    validate_train_config(_cfg("trainer=interactive", "agent.learners=1", "fusion=human_only"))
+    assert cfg.domain.decision_period_cycles == 5
+    validate_train(_cfg("trainer=interactive", "fusion=human_only"))
     for overrides, message in [
         (["agent.learners=4"], "agent.learners=4 with trainer=interactive: one person teaches one team"),
-        (["agent.learners=1", "trainer.port=70000"], "trainer.port=70000 is invalid"),
-        (["agent.learners=1", "trainer.actions_per_s=0.1"], "trainer.actions_per_s=0.1 is invalid"),
-        (["agent.learners=1", "agent.fields_per_learner=2"], "one trainer watches one field"),
+        (["trainer.port=70000"], "trainer.port=70000 is invalid"),
+        (["trainer.actions_per_s=0.1"], "trainer.actions_per_s=0.1 is invalid"),
+        (["agent.fields_per_learner=2"], "one trainer watches one field"),
     ]:
         with pytest.raises(ConfigError, match=message) as info:
-            validate_train_config(_cfg("trainer=interactive", *overrides))
+            validate_train(_cfg("trainer=interactive", *overrides))
         assert "\n" not in str(info.value)
-
-
-def test_watch_field_needs_the_browser_trainer():
-    model = TileCoding([1.0, 1.0], num_actions=3, learners=1, tilings=4, size=2**12)
-    human = FusedKeepers(
-        "linear", ConstantWeight([0.5]), KeeperTamer(model, 1), None, 3, torch.zeros(3).long()
-    )
-    with pytest.raises(TypeError, match="BrowserKeeperTrainer"):
-        watch_field(KeepawayEnv(1, CONFIG, sync="any"), KeepawayRecords(1, 3), human)

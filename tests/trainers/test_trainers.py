@@ -15,7 +15,6 @@ from hfrl_torch.envs.tetris import TetrisEnv, TetrisRules
 from hfrl_torch.envs.tetris.engine_numba import NumbaEngine
 from hfrl_torch.envs.tetris.features import DELLACHERIE, DELLACHERIE_WEIGHTS
 from hfrl_torch.envs.tetris.pieces import PIECE_NAMES, placement_table
-from hfrl_torch.experiment.tetris_tamer import run_tamer
 from hfrl_torch.feedback.credit import GammaDelay
 from hfrl_torch.feedback.events import FeedbackEvent, FeedbackQueue
 from hfrl_torch.feedback.log import FeedbackLog, load_feedback_log
@@ -245,17 +244,17 @@ def test_timing_tails_off_as_lines_rise():
     assert given[1] == 1000
 
 
-def test_replay_reproduces_a_log_on_the_same_steps(tmp_path):
-    kw = dict(rules=TetrisRules(8, 8), games=3, alpha=0.002, learners=2, seed=7, max_pieces=200)
-    with FeedbackLog(tmp_path / "first.jsonl", "s1", fsync=False) as log:
-        first = run_tamer(trainer=HumanLikeTiming(OracleTrainer(0.5, 0.8, seed=1), delay=0.2, log=log), **kw)
-    recorded = load_feedback_log(tmp_path / "first.jsonl")
-    assert len(recorded) == int(first["feedback"].sum()) > 0
-    with FeedbackLog(tmp_path / "second.jsonl", "s2", fsync=False) as log:
-        replay = ReplayTrainer.from_log(tmp_path / "first.jsonl", reaction=0.2, log=log)
-        second = run_tamer(trainer=replay, **kw)
-    replayed = load_feedback_log(tmp_path / "second.jsonl")
-    assert torch.equal(first["lines"], second["lines"]) and torch.equal(first["weights"], second["weights"])
+def test_replay_reproduces_a_log_on_the_same_steps(tmp_path, run_learner):
+    over = ["agent=tamer", "domain.width=8", "domain.height=8", "agent.games=3", "human.alpha=0.002"]
+    over += ["agent.learners=2", "seed=7", "domain.max_pieces=200", "trainer.reaction=0.2", "trainer.timing.enabled=false"]
+    first, _ = run_learner(tmp_path / "first", *over, "trainer=oracle", "trainer.consistency=0.8")
+    recorded = load_feedback_log(tmp_path / "first" / "feedback.jsonl")
+    assert len(recorded) == int(first.given[..., 0].sum()) > 0
+    log = tmp_path / "first" / "feedback.jsonl"
+    second, _ = run_learner(tmp_path / "second", *over, "trainer=replay", f"trainer.log={log}")
+    replayed = load_feedback_log(tmp_path / "second" / "feedback.jsonl")
+    assert torch.equal(first.lines, second.lines)
+    assert torch.equal(first.human.model.weight, second.human.model.weight)
 
     def key(e: FeedbackEvent) -> tuple:
         return (e.session.split("/")[-1], e.episode, e.step, e.value, round(e.time, 6))
