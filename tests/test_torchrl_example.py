@@ -45,8 +45,8 @@ def _env(weight: float = 0.5) -> TransformedEnv:
 
 
 def test_human_feedback_and_feedback_fusion_pass_check_env_specs_and_fuse_each_steps_feedback():
+    check_env_specs(_env())
     env = _env()
-    check_env_specs(env)
     td = env.reset()
     assert td[keys.FEEDBACK].shape == (3, 4) and not td[keys.FEEDBACK_MASK].any()
     td.set(keys.ACTION, torch.zeros(3, dtype=torch.int64))
