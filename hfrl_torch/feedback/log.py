@@ -53,6 +53,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal, overload
 
+from hfrl_torch.common.bounded_json import JSONBoundsError, loads_bounded
 from hfrl_torch.common.errors import UserError
 from hfrl_torch.feedback.events import EVENT_FIELDS, FeedbackEvent
 
@@ -122,67 +123,9 @@ class FeedbackLogContents:
     error: FeedbackLogError | None = None
 
 
-class _Unreadable(Exception):
-    """A line that is not JSON within the bounds (the text says what)."""
-
-    def __init__(self, reason: str, syntax: bool = False) -> None:
-        super().__init__(reason)
-        self.syntax = syntax  # bad JSON or UTF-8, as a cut-off write leaves
-
-
-def _int(text: str) -> int:
-    digits = len(text.lstrip("-"))
-    if digits > MAX_INT_DIGITS:
-        raise _Unreadable(f"an integer of {digits} digits; allowed: at most {MAX_INT_DIGITS}")
-    return int(text)
-
-
-def _float(text: str) -> float:
-    if len(text) > MAX_NUMBER_CHARS:
-        raise _Unreadable(f"a number of {len(text)} characters; allowed: at most {MAX_NUMBER_CHARS}")
-    return float(text)
-
-
-def _constant(text: str) -> float:
-    raise _Unreadable(f"{text}; allowed: finite numbers")
-
-
-def _depth(body: bytes) -> int:
-    """How deep arrays and objects nest in ``body`` (brackets inside strings do not count)."""
-    depth = deepest = 0
-    in_string = escaped = False
-    for c in body:
-        if in_string:
-            if escaped:
-                escaped = False
-            elif c == 0x5C:
-                escaped = True
-            elif c == 0x22:
-                in_string = False
-        elif c == 0x22:
-            in_string = True
-        elif c in (0x5B, 0x7B):
-            depth += 1
-            deepest = max(deepest, depth)
-        elif c in (0x5D, 0x7D):
-            depth -= 1
-    return deepest
-
-
 def _parse(body: bytes) -> Any:
-    """One line's JSON value, within the module's bounds, or ``_Unreadable``."""
-    try:
-        text = body.decode("utf-8")
-    except UnicodeDecodeError:
-        raise _Unreadable("not UTF-8", syntax=True) from None
-    if body.count(b"[") + body.count(b"{") > MAX_DEPTH:  # cheap: most lines cannot nest that deep
-        depth = _depth(body)
-        if depth > MAX_DEPTH:
-            raise _Unreadable(f"nested {depth} deep; allowed: at most {MAX_DEPTH}")
-    try:
-        return json.loads(text, parse_int=_int, parse_float=_float, parse_constant=_constant)
-    except ValueError:
-        raise _Unreadable("not JSON", syntax=True) from None
+    """One line's JSON value, within the module's bounds, or ``JSONBoundsError``."""
+    return loads_bounded(body, MAX_DEPTH, MAX_INT_DIGITS, MAX_NUMBER_CHARS)
 
 
 def _content(ev: FeedbackEvent) -> tuple[Any, ...]:
@@ -229,7 +172,7 @@ class _Reader:
                     )
                 try:
                     obj = _parse(raw[:-1] if terminated else raw)
-                except _Unreadable as e:
+                except JSONBoundsError as e:
                     if e.syntax and not terminated:
                         raise self.error(
                             f"{path}:{lineno}: truncated last line (an interrupted write)", lineno, True
