@@ -15,15 +15,24 @@ from hfrl_torch.feedback.events import (
     FeedbackQueueClosedError,
     FeedbackQueueFullError,
 )
-from hfrl_torch.feedback.log import FeedbackLog, FeedbackLogError, load_feedback_log
+from hfrl_torch.feedback.log import (
+    DuplicateFeedbackWarning,
+    FeedbackLog,
+    FeedbackLogContents,
+    FeedbackLogError,
+    load_feedback_log,
+    read_feedback_log,
+)
 from hfrl_torch.feedback.trust import IncrementalTrust, MatchRate, trust_from_policies
 
 __all__ = [
     "MAX_ABS_FEEDBACK",
     "CreditModel",
     "DelayDensity",
+    "DuplicateFeedbackWarning",
     "FeedbackEvent",
     "FeedbackLog",
+    "FeedbackLogContents",
     "FeedbackLogError",
     "FeedbackQueue",
     "FeedbackQueueClosedError",
@@ -35,5 +44,6 @@ __all__ = [
     "UniformDelay",
     "credit_weights",
     "load_feedback_log",
+    "read_feedback_log",
     "trust_from_policies",
 ]

@@ -60,6 +60,14 @@ def check_interactive(cfg: DictConfig) -> None:
     require_float(cfg, "trainer.wait_for_page_s", 0.0)
     require_int(cfg, "trainer.max_message_bytes", 64, 65536)
     require_float(cfg, "trainer.max_messages_per_s", 1.0, 1000.0)
+    for key, low in (("max_teachers", 1), ("max_connections", 1)):  # optional: the server's defaults
+        if OmegaConf.select(cfg, f"trainer.{key}") is not None:
+            require_int(cfg, f"trainer.{key}", low, 64)
+    teachers, pages = _connection_limits(cfg)
+    if teachers > pages:
+        raise ConfigError(
+            f"trainer.max_teachers={teachers} is invalid: must be at most trainer.max_connections={pages}"
+        )
     token = OmegaConf.select(cfg, "trainer.token")
     if token is not None and (not isinstance(token, str) or len(token) < 8):
         raise ConfigError("trainer.token is invalid: must be null (generated) or a string of 8+ characters")
@@ -73,12 +81,20 @@ def check_interactive(cfg: DictConfig) -> None:
         )
 
 
+def _connection_limits(cfg: DictConfig) -> tuple[int, int]:
+    """``(max_teachers, max_connections)``: the config's, or the server's defaults (1 and 4)."""
+    teachers = OmegaConf.select(cfg, "trainer.max_teachers")
+    pages = OmegaConf.select(cfg, "trainer.max_connections")
+    return (1 if teachers is None else int(teachers)), (4 if pages is None else int(pages))
+
+
 def start_live_teaching(cfg: DictConfig, log: FeedbackLog, view: str) -> LiveTeaching:
     """Start the page's server for ``view`` (tetris or keepaway); raises ConfigError if it cannot serve."""
     check_interactive(cfg)
     t = cfg.trainer
     speed = DEFAULT_SPEED[view] if t.actions_per_s is None else float(t.actions_per_s)
     session = TeachingSession(actions_per_s=speed)
+    teachers, pages = _connection_limits(cfg)
     server = TeachingServer(
         session,
         host=t.host,
@@ -88,6 +104,8 @@ def start_live_teaching(cfg: DictConfig, log: FeedbackLog, view: str) -> LiveTea
         view=view,
         max_message_bytes=int(t.max_message_bytes),
         max_messages_per_s=float(t.max_messages_per_s),
+        max_teachers=teachers,
+        max_connections=pages,
     )
     try:
         server.start()

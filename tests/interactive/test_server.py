@@ -14,9 +14,12 @@ import urllib.request
 
 import aiohttp
 import pytest
+from hydra import compose, initialize_config_dir
 
+from hfrl_torch.app import CONF_DIR
+from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.feedback.log import FeedbackLog, load_feedback_log
-from hfrl_torch.interactive.live import LiveTeaching
+from hfrl_torch.interactive.live import LiveTeaching, check_interactive
 from hfrl_torch.interactive.server import TeachingServer, is_loopback, split_authority
 from hfrl_torch.interactive.session import TeachingSession
 from hfrl_torch.trainers.queue_trainer import QueueTrainer
@@ -356,3 +359,18 @@ def test_curve_points_reach_the_page_even_when_frames_follow_at_once(served):
     session.publish({"type": "status", "text": "next game"})
     got = asyncio.run(_exchange(_ws_url(server), [], wait_for=5))
     assert {"type": "curve", "curve": [[1.0, 12.5]]} in got
+
+
+def test_connection_limits_from_the_config_are_checked():
+    def cfg(*overrides: str):
+        with initialize_config_dir(str(CONF_DIR), version_base=None):
+            return compose("train", overrides=["trainer=interactive", *overrides])
+
+    check_interactive(cfg())
+    check_interactive(cfg("+trainer.max_teachers=2", "+trainer.max_connections=3"))
+    with pytest.raises(
+        ConfigError, match=r"trainer\.max_connections=0 is invalid: must be an integer in 1\.\.64"
+    ):
+        check_interactive(cfg("+trainer.max_connections=0"))
+    with pytest.raises(ConfigError, match=r"trainer\.max_teachers=5 is invalid: must be at most"):
+        check_interactive(cfg("+trainer.max_teachers=5"))
