@@ -1,4 +1,4 @@
-"""Train any TorchRL learner on the fused reward: a collector over ``TransformedEnv(env, FeedbackFusion(...))``.
+"""Train a TorchRL learner on the fused reward: a collector over ``TransformedEnv(env, FeedbackFusion(...))``.
 
 A simulated trainer (Griffith et al.'s oracle: a program, not a person) judges every placement on a batched
 ``TetrisEnv``; ``HumanFeedback`` writes its events into each step's ``next`` and ``FeedbackFusion`` turns the
@@ -76,7 +76,11 @@ def train(frames: int, weight: float, boards: int = 8, steps: int = 50, seed: in
         out_keys=[keys.ACTION],
     )
     collector = Collector(
-        env, policy, frames_per_batch=boards * steps, total_frames=frames, auto_register_policy_transforms=False
+        env,
+        policy,
+        frames_per_batch=boards * steps,
+        total_frames=frames,
+        auto_register_policy_transforms=False,
     )
     lines, given, shaped = [], 0, 0.0
     for batch in collector:

@@ -67,5 +67,5 @@ def compose_train():
 
 @pytest.fixture
 def run_learner():
-    """``run_learner(run_dir, *overrides, checkpoint=None)``: train.py's loop on ``overrides`` in ``run_dir``."""
+    """``run_learner(run_dir, *overrides, ...)``: train.py's loop on ``overrides`` in ``run_dir``."""
     return _run_learner

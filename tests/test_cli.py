@@ -10,6 +10,8 @@ from pathlib import Path
 import pytest
 import torch
 
+from hfrl_torch.common.checkpoint import checksum
+
 ROOT = Path(__file__).resolve().parent.parent
 TINY = [
     "domain.width=6",
@@ -103,6 +105,14 @@ def test_corrupt_and_wrong_domain_checkpoints_fail_cleanly(trained, tmp_path):
     blob = torch.load(trained / "checkpoints" / "last.pt", weights_only=True)
     blob["domain"] = "keepaway"
     other = tmp_path / "other.pt"
+    torch.save(blob, other)  # edited by hand: the checksum no longer matches
+    out = run("evaluate.py", f"policy={other}")
+    assert (
+        out.returncode == 2
+        and "fails its checksum" in out.stderr
+        and len(out.stderr.strip().splitlines()) == 1
+    )
+    blob["sha256"] = checksum(blob)  # as a keepaway run would have written it
     torch.save(blob, other)
     out = run("evaluate.py", f"policy={other}")
     assert out.returncode == 2 and "is for domain 'keepaway', not 'tetris'" in out.stderr

@@ -48,7 +48,10 @@ def test_defaults_are_valid():
         ("device=tpu", "device='tpu' is invalid; allowed: cpu, cuda, cuda:N"),
         ("threads=0", "threads=0 is invalid: must be an integer in 1..256"),
         ("logger.backend=wandb", "logger.backend='wandb' is invalid; allowed: tensorboard, none"),
-        ("fusion=linear trainer=none", "fusion='linear' fuses the trainer's H^ with the environment; choose a trainer"),
+        (
+            "fusion=linear trainer=none",
+            "fusion='linear' fuses the trainer's H^ with the environment; choose a trainer",
+        ),
         (
             "fusion=linear trainer=oracle fusion.weight=-1",
             "fusion.weight=-1 is invalid: must be a finite number >= 0.0",

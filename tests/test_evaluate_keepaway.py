@@ -13,12 +13,12 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from hfrl_torch.agents.sarsa.policy import load_keeper_policy
-from hfrl_torch.experiment.cli import CONF_DIR
 from hfrl_torch.common.checkpoint import load_checkpoint, save_checkpoint
 from hfrl_torch.common.errors import CheckpointError, ConfigError
 from hfrl_torch.envs.keepaway import play_benchmark_policy, play_keeper_policy
-from hfrl_torch.experiment.evaluate import evaluate_keepaway, format_keepaway_summary
+from hfrl_torch.experiment.cli import CONF_DIR
 from hfrl_torch.experiment.config import validate_train
+from hfrl_torch.experiment.evaluate import evaluate_keepaway, format_keepaway_summary
 from hfrl_torch.experiment.learners.keepaway_sarsa import SarsaKeepers
 from hfrl_torch.experiment.run import RunFiles, learn
 from hfrl_torch.models.tile_coding import TileCoding

@@ -18,7 +18,13 @@ from hfrl_torch.envs.tetris.env import TetrisEnv
 from hfrl_torch.fusion import Fusion, choosable
 
 TETRIS = ["domain.width=6", "domain.height=6", "domain.max_pieces=40"]
-CE = [*TETRIS, "agent.population=6", "agent.games_per_candidate=1", "agent.eval_games=2", "agent.watch_pieces=20"]
+CE = [
+    *TETRIS,
+    "agent.population=6",
+    "agent.games_per_candidate=1",
+    "agent.eval_games=2",
+    "agent.watch_pieces=20",
+]
 KEEPAWAY = ["domain=keepaway", "agent.learners=2", "agent.table_bits=12", "agent.log_minutes=0.1"]
 LOOPS = {
     "tamer": ["agent=tamer", "trainer=oracle", "agent.games=2", "agent.learners=2", *TETRIS],
@@ -73,7 +79,9 @@ def test_tetris_games_learners_fuse_every_placement(tmp_path, run_learner, fused
 
 
 @pytest.mark.parametrize("agent", ["tamer", "pg"])
-def test_tetris_games_learners_act_on_the_components_values(tmp_path, run_learner, monkeypatch, tetris_actions, agent):
+def test_tetris_games_learners_act_on_the_components_values(
+    tmp_path, run_learner, monkeypatch, tetris_actions, agent
+):
     monkeypatch.setattr(Fusion, "values", _last_choosable)
     run_learner(tmp_path, *LOOPS[agent])
     for action, keep in tetris_actions:

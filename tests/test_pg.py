@@ -12,14 +12,14 @@ from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
 
 from hfrl_torch.agents.pg import PolicyGradient, natural_direction, score_and_fisher
-from hfrl_torch.experiment.cli import CONF_DIR
 from hfrl_torch.common.checkpoint import load_checkpoint
 from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.envs.tetris import TetrisRules
 from hfrl_torch.envs.tetris.engine_numba import play
 from hfrl_torch.envs.tetris.features import BT
-from hfrl_torch.experiment.evaluate import evaluate_tetris
+from hfrl_torch.experiment.cli import CONF_DIR
 from hfrl_torch.experiment.config import validate_train
+from hfrl_torch.experiment.evaluate import evaluate_tetris
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -124,7 +124,14 @@ SMALL = ["agent=pg", "domain.width=6", "domain.height=8"]
 
 
 def test_pg_learner_is_deterministic_and_counts_games(tmp_path, run_learner):
-    over = [*SMALL, "agent.games=4", "agent.lr=0.003", "agent.learners=3", "seed=4", "agent.games_per_update=2"]
+    over = [
+        *SMALL,
+        "agent.games=4",
+        "agent.lr=0.003",
+        "agent.learners=3",
+        "seed=4",
+        "agent.games_per_update=2",
+    ]
     over += ["domain.max_pieces=40", "agent.eval_games=0"]
     a, _ = run_learner(tmp_path / "a", *over)
     b, _ = run_learner(tmp_path / "b", *over)
@@ -137,7 +144,14 @@ def test_pg_learner_is_deterministic_and_counts_games(tmp_path, run_learner):
 def test_learned_policies_clear_clearly_more_lines_than_random_and_untrained_ones(
     tmp_path, run_learner, natural, lr, per_update
 ):
-    over = [*SMALL, "agent.games=100", f"agent.lr={lr}", "agent.learners=10", "seed=0", f"agent.natural={natural}"]
+    over = [
+        *SMALL,
+        "agent.games=100",
+        f"agent.lr={lr}",
+        "agent.learners=10",
+        "seed=0",
+        f"agent.natural={natural}",
+    ]
     over += [f"agent.games_per_update={per_update}", "domain.max_pieces=2000", "agent.eval_games=0"]
     out, _ = run_learner(tmp_path, *over)
     rules = TetrisRules(6, 8)
@@ -175,7 +189,10 @@ def test_train_pg_writes_metrics_and_a_checkpoint_that_evaluate_plays(tmp_path, 
         ("agent.temperature=0", "agent.temperature=0 is invalid"),
         ("agent.games_per_update=0", "agent.games_per_update=0 is invalid: must be an integer >= 1"),
         ("agent.baseline_decay=2", "agent.baseline_decay=2 is invalid"),
-        ("fusion=linear trainer=none", "fusion='linear' fuses a trainer's H^ into the policy; choose a trainer"),
+        (
+            "fusion=linear trainer=none",
+            "fusion='linear' fuses a trainer's H^ into the policy; choose a trainer",
+        ),
         ("fusion=exponential trainer=oracle", "fusion='exponential' with agent=pg is invalid; allowed: none"),
         ("fusion=linear trainer=oracle human.features=bt", "agent=pg with a trainer needs"),
     ],
@@ -204,7 +221,14 @@ def test_fused_values_shift_the_policy_and_the_score_is_taken_under_it():
 
 
 def test_pg_with_a_simulated_trainer_learns_h_and_updates_trust_per_learner(tmp_path, run_learner):
-    over = [*SMALL, "fusion=linear", "trainer=oracle", "agent.games=6", "agent.learners=3", "agent.eval_games=0"]
+    over = [
+        *SMALL,
+        "fusion=linear",
+        "trainer=oracle",
+        "agent.games=6",
+        "agent.learners=3",
+        "agent.eval_games=0",
+    ]
     _, final = run_learner(tmp_path, *over)
     rows = [json.loads(x) for x in (tmp_path / "metrics.jsonl").read_text().splitlines()]
     assert rows[0]["fusion/weight_mean"] == 0.5 and rows[-1]["fusion/weight_mean"] != 0.5
@@ -220,10 +244,14 @@ def test_a_resumed_taught_run_equals_an_uninterrupted_one(tmp_path, run_learner)
     whole, _ = run_learner(tmp_path / "whole", *over, "agent.games=6")
     _, stopped = run_learner(tmp_path / "part", *over, "agent.games=6", stop_after=2)
     assert stopped is None and 2 <= len(load_checkpoint(tmp_path / "part")["history"]) < 6
-    part, _ = run_learner(tmp_path / "part", *over, "agent.games=6", checkpoint=load_checkpoint(tmp_path / "part"))
+    part, _ = run_learner(
+        tmp_path / "part", *over, "agent.games=6", checkpoint=load_checkpoint(tmp_path / "part")
+    )
     assert torch.equal(whole.lines, part.lines) and torch.equal(whole.pg.weight, part.pg.weight)
     assert torch.equal(whole.human.model.weight, part.human.model.weight)
-    assert (tmp_path / "whole" / "metrics.jsonl").read_text() == (tmp_path / "part" / "metrics.jsonl").read_text()
+    assert (tmp_path / "whole" / "metrics.jsonl").read_text() == (
+        tmp_path / "part" / "metrics.jsonl"
+    ).read_text()
     events = [(tmp_path / d / "feedback.jsonl").read_text().splitlines() for d in ("whole", "part")]
     # the same events (a resumed log holds a second session header, and its events carry its session name)
     body = [[e.split('"session"')[0] for e in log if '"schema"' not in e] for log in events]

@@ -10,14 +10,14 @@ from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
 
 from hfrl_torch.agents.qlearning import LinearQLearning
-from hfrl_torch.experiment.cli import CONF_DIR
 from hfrl_torch.common.checkpoint import load_checkpoint
 from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.envs.tetris import TetrisRules
 from hfrl_torch.envs.tetris.engine_numba import play
 from hfrl_torch.envs.tetris.features import BT
-from hfrl_torch.experiment.evaluate import evaluate_tetris
+from hfrl_torch.experiment.cli import CONF_DIR
 from hfrl_torch.experiment.config import validate_train
+from hfrl_torch.experiment.evaluate import evaluate_tetris
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -92,10 +92,14 @@ def test_qlearning_learner_is_deterministic_and_counts_games(tmp_path, run_learn
 
 def test_learned_policies_clear_clearly_more_lines_than_random_and_untrained_ones(tmp_path, run_learner):
     over = [*SMALL, "agent.games=100", "agent.alpha=0.003", "agent.gamma=0.9", "agent.epsilon=0.1"]
-    out, _ = run_learner(tmp_path, *over, "agent.learners=10", "seed=0", "domain.max_pieces=2000", "agent.eval_games=0")
+    out, _ = run_learner(
+        tmp_path, *over, "agent.learners=10", "seed=0", "domain.max_pieces=2000", "agent.eval_games=0"
+    )
     rules = TetrisRules(6, 8)
     seeds = torch.arange(500, 540)
-    learned = torch.stack([play(rules, BT, w, seeds, max_pieces=2000)[0] for w in out.agent_q.weight]).double()
+    learned = torch.stack(
+        [play(rules, BT, w, seeds, max_pieces=2000)[0] for w in out.agent_q.weight]
+    ).double()
     zeros = torch.zeros(13)
     random_lines = play(rules, BT, zeros, seeds, random_policy=True)[0].double().mean()
     untrained = play(rules, BT, zeros, seeds)[0].double().mean()  # w = 0: always the first placement
@@ -124,9 +128,13 @@ def test_a_resumed_run_equals_an_uninterrupted_one(tmp_path, run_learner):
     whole, _ = run_learner(tmp_path / "whole", *over, "agent.games=6")
     _, stopped = run_learner(tmp_path / "part", *over, "agent.games=6", stop_after=2)
     assert stopped is None and 2 <= len(load_checkpoint(tmp_path / "part")["history"]) < 6
-    part, _ = run_learner(tmp_path / "part", *over, "agent.games=6", checkpoint=load_checkpoint(tmp_path / "part"))
+    part, _ = run_learner(
+        tmp_path / "part", *over, "agent.games=6", checkpoint=load_checkpoint(tmp_path / "part")
+    )
     assert torch.equal(whole.lines, part.lines) and torch.equal(whole.agent_q.weight, part.agent_q.weight)
-    assert (tmp_path / "whole" / "metrics.jsonl").read_text() == (tmp_path / "part" / "metrics.jsonl").read_text()
+    assert (tmp_path / "whole" / "metrics.jsonl").read_text() == (
+        tmp_path / "part" / "metrics.jsonl"
+    ).read_text()
 
 
 @pytest.mark.parametrize(

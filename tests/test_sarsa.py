@@ -265,7 +265,12 @@ def test_short_learning_run_beats_the_random_policy(tmp_path, run_learner):
         coder = TileCoding(keepaway_tile_widths(), 3, learners=1, size=2**18)
         learner.agent_sarsa = SarsaLambda(coder, seed=7, tables=torch.zeros(fields * 3, dtype=torch.int64))
 
-    over = [*KEEPAWAY, "agent.learners=1", f"agent.fields_per_learner={fields}", "domain.decision_period_cycles=5"]
+    over = [
+        *KEEPAWAY,
+        "agent.learners=1",
+        f"agent.fields_per_learner={fields}",
+        "domain.decision_period_cycles=5",
+    ]
     over += [f"agent.hours={1200 * fields / 36000}", "seed=7", "agent.log_minutes=60"]
     learner, _ = run_learner(tmp_path, *over, prepare=one_shared_table)
     table = learner.records.table.double()
@@ -313,7 +318,9 @@ def test_train_writes_curves_and_checkpoint_and_resumes(tmp_path, run_learner):
     assert ckpt["state"]["agent"]["weight"].shape == (2 * 3, 2**12)
     assert int(ckpt["state"]["records"]["clock"].min()) >= 0.003 * 36000
 
-    _train(tmp_path, run_learner, *small, "agent.hours=0.006", "agent.checkpoint_minutes=0.1", checkpoint=ckpt)
+    _train(
+        tmp_path, run_learner, *small, "agent.hours=0.006", "agent.checkpoint_minutes=0.1", checkpoint=ckpt
+    )
     again = load_checkpoint(tmp_path)
     assert again["state"]["resumes"] == 1
     assert torch.equal(again["state"]["records"]["rows"][: rows.shape[0]], rows)  # history kept
@@ -344,7 +351,9 @@ def test_fields_per_learner_share_tables_and_sum_the_clock(tmp_path, run_learner
         assert bool((mine[1:, 2] >= mine[:-1, 2]).all())  # learner clock at the end, nondecreasing
     assert int(state["records"]["episodes"].sum()) == rows.shape[0]
 
-    _train(tmp_path, run_learner, *small, "agent.hours=0.009", "agent.checkpoint_minutes=0.1", checkpoint=ckpt)
+    _train(
+        tmp_path, run_learner, *small, "agent.hours=0.009", "agent.checkpoint_minutes=0.1", checkpoint=ckpt
+    )
     again = load_checkpoint(tmp_path)["state"]["records"]
     assert torch.equal(again["rows"][: rows.shape[0]], rows)
     assert int(again["clock"].view(2, 3).sum(1).min()) >= 0.009 * 36000

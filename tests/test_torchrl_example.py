@@ -1,5 +1,5 @@
-"""The documented TorchRL example: a collector over ``TransformedEnv(env, Compose(HumanFeedback, FeedbackFusion))``
-and a learner training on the fused reward, with a tiny budget; and the transform pair on its own."""
+"""The documented TorchRL example: a collector over ``TransformedEnv(env, Compose(HumanFeedback,
+FeedbackFusion))`` and a learner training on the fused reward, with a tiny budget; and the transform pair."""
 
 from __future__ import annotations
 
@@ -55,7 +55,9 @@ def test_human_feedback_and_feedback_fusion_pass_check_env_specs_and_fuse_each_s
     assert nxt[keys.FEEDBACK_MASK][:, 0].all() and nxt[keys.FEEDBACK_TIME][:, 0].tolist() == [0.3] * 3
     fb = nxt[keys.FEEDBACK][:, 0]
     assert set(fb.tolist()) <= {-1.0, 1.0}
-    torch.testing.assert_close(nxt[keys.REWARD].reshape(-1), nxt[keys.ENV_REWARD].reshape(-1) + 0.5 * fb.float())
+    torch.testing.assert_close(
+        nxt[keys.REWARD].reshape(-1), nxt[keys.ENV_REWARD].reshape(-1) + 0.5 * fb.float()
+    )
 
 
 def test_the_transform_state_resumes_its_clock_and_trainer():

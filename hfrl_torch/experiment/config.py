@@ -234,7 +234,7 @@ def check_pg(cfg: DictConfig) -> None:
 
 
 def check_tetris_trainer(cfg: DictConfig) -> None:
-    """The Tetris trainer: a simulated one (oracle, value proxy, with human-like timing), a replay or a person."""
+    """The Tetris trainer: a simulated one (oracle, value proxy, human-like timing), a replay or a person."""
     name = require_choice(cfg, "trainer.name", TRAINERS)
     if name == "none":
         return
@@ -345,6 +345,12 @@ def check_interactive(cfg: DictConfig) -> None:
     require_float(cfg, "trainer.wait_for_page_s", 0.0)
     require_int(cfg, "trainer.max_message_bytes", 64, 65536)
     require_float(cfg, "trainer.max_messages_per_s", 1.0, 1000.0)
+    teachers = require_int(cfg, "trainer.max_teachers", 1, 64)
+    pages = require_int(cfg, "trainer.max_connections", 1, 64)
+    if teachers > pages:
+        raise ConfigError(
+            f"trainer.max_teachers={teachers} is invalid: must be at most trainer.max_connections={pages}"
+        )
     token = OmegaConf.select(cfg, "trainer.token")
     if token is not None and (not isinstance(token, str) or len(token) < 8):
         raise ConfigError("trainer.token is invalid: must be null (generated) or a string of 8+ characters")
@@ -475,8 +481,8 @@ def check_keepaway_feedback(cfg: DictConfig) -> None:
     if reference not in (None, "hand"):
         if not Path(str(reference)).exists():
             raise ConfigError(
-                f"trainer.reference={reference!r} is invalid; allowed: null or hand (the hand-coded keepers), "
-                "or a keepaway run directory or checkpoint"
+                f"trainer.reference={reference!r} is invalid; allowed: null or hand (the hand-coded "
+                "keepers), or a keepaway run directory or checkpoint"
             )
         ckpt = load_checkpoint(str(reference), domain="keepaway")
         task = ckpt.get("domain_config", {})

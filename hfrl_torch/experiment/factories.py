@@ -223,7 +223,7 @@ def make_keeper_trainer(
     log: FeedbackLog | None,
     session: TeachingSession | None,
 ) -> KeepawayOracle | KeepawayReplay | BrowserKeeperTrainer:
-    """Who judges the keepers: the simulated oracle, a replayed log, or the person on the page of ``session``."""
+    """Who judges the keepers: the simulated oracle, a replayed log, or the person on ``session``'s page."""
     t = cfg.trainer
     if t.name == "interactive":
         if session is None:
@@ -262,6 +262,8 @@ def make_live_teaching(cfg: DictConfig, log: FeedbackLog, view: str) -> LiveTeac
         view=view,
         max_message_bytes=int(t.max_message_bytes),
         max_messages_per_s=float(t.max_messages_per_s),
+        max_teachers=int(t.max_teachers),
+        max_connections=int(t.max_connections),
     )
     return LiveTeaching.start(server, session, QueueTrainer(session.queue, log=log))
 

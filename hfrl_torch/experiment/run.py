@@ -133,7 +133,7 @@ class Learner(ABC):
         return steps
 
     def points_of(self, history: Sequence[dict[str, Any]]) -> list[Point]:
-        """The points of saved records (for TensorBoard's purge steps); learners with several axes override."""
+        """The points of saved records (TensorBoard's purge steps); learners with several axes override."""
         key = self.x_key
         return [Point(r, int(r[key])) for r in history if key in r]
 
@@ -143,7 +143,7 @@ class Learner(ABC):
         """What the progress bar shows after ``point``."""
         return {}
 
-    def start(self, logger: Logger) -> None:
+    def start(self, logger: Logger) -> None:  # noqa: B027  (an optional hook)
         """Called once before the first chunk (``logger``: the main TensorBoard writer; text tags)."""
 
     def final(self) -> dict[str, Any]:
@@ -162,7 +162,7 @@ class Learner(ABC):
         """Final metrics for TensorBoard's HPARAMS view."""
         return {}
 
-    def close(self) -> None:
+    def close(self) -> None:  # noqa: B027  (an optional hook)
         """Release what the learner holds (servers, logs); called once, also after an interruption."""
 
 

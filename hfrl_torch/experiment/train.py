@@ -1,4 +1,4 @@
-"""What ``train.py`` does: set up (or resume) a run directory, run the agent's learner, say where it all is."""
+"""What ``train.py`` does: set up (or resume) a run directory, run the agent's learner, say where it is."""
 
 from __future__ import annotations
 

@@ -16,15 +16,24 @@ from hfrl_torch.feedback.events import (
     FeedbackQueueClosedError,
     FeedbackQueueFullError,
 )
-from hfrl_torch.feedback.log import FeedbackLog, FeedbackLogError, load_feedback_log
+from hfrl_torch.feedback.log import (
+    DuplicateFeedbackWarning,
+    FeedbackLog,
+    FeedbackLogContents,
+    FeedbackLogError,
+    load_feedback_log,
+    read_feedback_log,
+)
 
 __all__ = [
     "MAX_ABS_FEEDBACK",
     "CreditModel",
     "DelayDensity",
+    "DuplicateFeedbackWarning",
     "FeedbackChannel",
     "FeedbackEvent",
     "FeedbackLog",
+    "FeedbackLogContents",
     "FeedbackLogError",
     "FeedbackQueue",
     "FeedbackQueueClosedError",
@@ -34,4 +43,5 @@ __all__ = [
     "UniformDelay",
     "credit_weights",
     "load_feedback_log",
+    "read_feedback_log",
 ]

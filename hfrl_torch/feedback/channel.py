@@ -35,7 +35,8 @@ class FeedbackChannel:
     def __init__(self, boards: int, slots: int = 4, capacity: int = 64) -> None:
         if boards < 1 or slots < 1 or capacity < slots:
             raise ValueError(
-                f"FeedbackChannel needs boards >= 1 and capacity >= slots >= 1, got {boards}, {slots}, {capacity}"
+                "FeedbackChannel needs boards >= 1 and capacity >= slots >= 1, "
+                f"got {boards}, {slots}, {capacity}"
             )
         self.boards, self.slots, self.capacity = int(boards), int(slots), int(capacity)
         self.time = torch.full((boards, capacity), torch.inf, dtype=torch.float64)

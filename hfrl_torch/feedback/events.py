@@ -18,6 +18,7 @@ import torch
 from hfrl_torch import keys
 
 __all__ = [
+    "EVENT_FIELDS",
     "MAX_ABS_FEEDBACK",
     "SOURCE_KINDS",
     "FeedbackEvent",
@@ -29,6 +30,7 @@ __all__ = [
 ]
 
 MAX_ABS_FEEDBACK = 1e3
+EVENT_FIELDS = ("time", "step", "episode", "value", "source", "session", "seq")
 
 
 def _is_real(x: object) -> bool:
@@ -49,6 +51,8 @@ class FeedbackEvent:
     :param session: the training session; ``""`` = not yet assigned (``FeedbackLog.append`` fills it in).
     :param step: the agent step it was given at; -1 = not yet known.
     :param episode: the episode it was given in; -1 = not yet known.
+    :param seq: its number within its session, 0, 1, 2...; -1 = not yet logged. Only ``FeedbackLog``
+        assigns it, when it writes the event; ``(session, seq)`` is then the event's stable :attr:`id`.
     """
 
     time: float
@@ -57,6 +61,7 @@ class FeedbackEvent:
     session: str = ""
     step: int = -1
     episode: int = -1
+    seq: int = -1
 
     def __post_init__(self) -> None:
         if not (_is_real(self.time) and math.isfinite(self.time)):
@@ -70,7 +75,7 @@ class FeedbackEvent:
             raise ValueError(f"FeedbackEvent.source must be a non-empty string, got {self.source!r}")
         if not isinstance(self.session, str):
             raise ValueError(f"FeedbackEvent.session must be a string, got {self.session!r}")
-        for name in ("step", "episode"):
+        for name in ("step", "episode", "seq"):
             v = getattr(self, name)
             if not (_is_int(v) and v >= -1):
                 raise ValueError(f"FeedbackEvent.{name} must be an integer >= 0 (or -1 = unknown), got {v!r}")
@@ -78,11 +83,17 @@ class FeedbackEvent:
         object.__setattr__(self, "value", float(self.value))
         object.__setattr__(self, "step", int(self.step))
         object.__setattr__(self, "episode", int(self.episode))
+        object.__setattr__(self, "seq", int(self.seq))
+
+    @property
+    def id(self) -> tuple[str, int] | None:
+        """``(session, seq)``, the same in every copy of the event; None until a ``FeedbackLog`` wrote it."""
+        return (self.session, self.seq) if self.seq >= 0 else None
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-able fields, in the order the feedback log writes them."""
         d = asdict(self)
-        return {k: d[k] for k in ("time", "step", "episode", "value", "source", "session")}
+        return {k: d[k] for k in EVENT_FIELDS}
 
 
 class FeedbackQueueFullError(RuntimeError):

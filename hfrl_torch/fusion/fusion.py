@@ -48,7 +48,7 @@ CONTROL_SHARING_THRESHOLD = (
 
 
 def choosable(mask: Tensor, terminal: Tensor | None = None) -> Tensor:
-    """The actions a greedy choice may take: valid, and not game-ending unless every valid one ends the game."""
+    """The actions a greedy choice may take: valid, and not game-ending unless every valid one ends it."""
     if terminal is None:
         return mask
     safe = mask & ~terminal
@@ -95,7 +95,7 @@ class Fusion:
 
     @classmethod
     def from_option(cls, option: str, schedule: WeightSchedule, **kwargs: Any) -> Fusion:
-        """The fusion of a ``fusion`` config option (``OPTIONS``: ``linear``, ``annealed``, ``reward_shaping``...)."""
+        """The fusion of a ``fusion`` config option (``OPTIONS``: ``linear``, ``annealed``...)."""
         if option not in OPTIONS:
             raise ValueError(f"fusion={option!r} is invalid; allowed: {', '.join(OPTIONS)}")
         rules = OPTIONS[option]
@@ -141,7 +141,8 @@ class Fusion:
         if rows == self.learners:
             return torch.arange(rows)
         raise ValueError(
-            f"Fusion of {self.learners} learners got {rows} rows without a {keys.LEARNER!r} entry naming theirs"
+            f"Fusion of {self.learners} learners got {rows} rows without a {keys.LEARNER!r} entry "
+            "naming theirs"
         )
 
     # ----------------------------------------------------------------- decision
@@ -168,7 +169,7 @@ class Fusion:
         terminal = td.get(keys.AFTERSTATE_TERMINAL, None)
         learner = self._learner(td)
         w = self.weight(learner) if weight is None else weight.reshape(-1).to(torch.float64).cpu()
-        if count and not self.evaluating and keys.ENV_VALUES in td.keys():
+        if count and not self.evaluating and keys.ENV_VALUES in td:
             self.matches.count(r, h, choosable(mask, terminal), learner)
         td.set(keys.FUSED_VALUES, self.values(r, h, mask, terminal, learner, w))
         td.set(keys.FUSION_WEIGHT, w.to(h.device))

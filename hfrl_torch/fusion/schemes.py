@@ -149,7 +149,7 @@ def fuse_values(
           is ``1 + sign(H^)``: 2 for liked, 1 for neutral, 0 for disliked actions. For negative-valued
           estimates (CE afterstate values usually are) prefer ``linear``, or shift R to be >= 0.
 
-        ``control_sharing`` is a selection rule, not a value: :class:`~hfrl_torch.fusion.fusion.Fusion` applies it.
+        ``control_sharing`` is a selection rule, not a value: ``fusion.Fusion`` applies it.
     :param weight: ``w`` / ``beta`` >= 0: a number, or a tensor of shape ``[]`` or ``values.shape[:-1]``
         (one per board / learner).
     """

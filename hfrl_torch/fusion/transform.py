@@ -1,4 +1,4 @@
-"""The TorchRL faces of the one fusion component: ``FeedbackFusion`` on the env, ``FusionModule`` in the policy.
+"""The TorchRL faces of the fusion component: ``FeedbackFusion`` on the env, ``FusionModule`` in the policy.
 
 :class:`FeedbackFusion` is a transform that trains the learner on a fused reward: Knox & Stone's reward
 shaping ``R' = R + beta H^`` (AAMAS 2010), the thesis's linear (eq. 4.2) and exponential (eq. 5.1) rules
@@ -18,7 +18,7 @@ Where ``FeedbackFusion`` reads H:
   primer's value reset at every step). An absent estimate reads as 0.
 - ``feedback_key`` (e.g. ``keys.FEEDBACK``): the person's reward for this step, ``[*B, 1]`` or the
   channel's ``[*B, K]`` slots (summed), 0 where none was given, written into ``next`` by the env or by an
-  earlier transform of a ``Compose`` (``trainers.transform.HumanFeedback``). It must be present when asked for.
+  earlier transform of a ``Compose`` (``trainers.transform.HumanFeedback``). It must be there when asked for.
 - both: the person's own reward where they gave one (nonzero), H^ elsewhere.
 
 Several agents in one env (keepaway's keepers, an SMDP): with ``agent_key`` the estimate written with an
@@ -312,7 +312,7 @@ class FeedbackFusion(Transform):
         return self._reset(tensordict, tensordict_reset)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        """Fuse a stored trajectory ``[*B, T]`` after the fact (see the class docstring; one agent per board)."""
+        """Fuse a stored trajectory ``[*B, T]`` after the fact (the class docstring; one agent per board)."""
         if self.agent_key is not None:
             raise ValueError("FeedbackFusion offline fuses one agent per board; it was built with agent_key")
         names = tensordict.names if tensordict.batch_dims else []
@@ -419,13 +419,22 @@ class FusionModule(TensorDictModuleBase):
     """
 
     def __init__(
-        self, fusion: Fusion, select: str | None = None, count: bool = True, weight_key: NestedKey | None = None
+        self,
+        fusion: Fusion,
+        select: str | None = None,
+        count: bool = True,
+        weight_key: NestedKey | None = None,
     ) -> None:
         super().__init__()
         if select not in (None, "greedy"):
             raise ValueError(f"FusionModule select={select!r} is invalid; allowed: None, greedy")
         self.fusion, self.select, self.count, self.weight_key = fusion, select, bool(count), weight_key
-        self.in_keys = [keys.ENV_VALUES, keys.HUMAN_VALUES, keys.ACTION_MASK, *([weight_key] if weight_key else [])]
+        self.in_keys = [
+            keys.ENV_VALUES,
+            keys.HUMAN_VALUES,
+            keys.ACTION_MASK,
+            *([weight_key] if weight_key else []),
+        ]
         self.out_keys = [keys.FUSED_VALUES, keys.FUSION_WEIGHT, *([keys.ACTION] if select else [])]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:

@@ -158,7 +158,7 @@ class MatchCounter:
         self.add(learner, (prefers & same).to(torch.int64), prefers.to(torch.int64))
 
     def add(self, learner: Tensor, matches: Tensor, compared: Tensor) -> None:
-        """Add counts made elsewhere (the compiled games): ``matches`` and ``compared`` [M] of ``learner`` [M]."""
+        """Add counts made elsewhere (compiled games): ``matches`` and ``compared`` [M] of ``learner`` [M]."""
         idx = learner.detach().cpu().to(torch.int64).reshape(-1)
         self.matches.index_add_(0, idx, matches.detach().cpu().to(torch.int64).reshape(-1))
         self.compared.index_add_(0, idx, compared.detach().cpu().to(torch.int64).reshape(-1))

@@ -142,6 +142,8 @@ class BrowserKeeperTrainer:
         self.waiting: deque[FeedbackEvent] = deque()
         self.given = 0
         self.positive = 0
+        self._now = 0.0  # the watched field's clock at the last poll
+        session.log_left = self.log_left
 
     def new_episodes(self, starting: Tensor) -> None:
         """Nothing to draw: the person comes and goes through the page."""
@@ -161,19 +163,27 @@ class BrowserKeeperTrainer:
             return now, -1, -1
         return min(seen.sim + self.reaction_s, now), seen.episode, seen.step
 
+    def _credited(self, pressed: list[FeedbackEvent], now: float) -> list[FeedbackEvent]:
+        """The presses placed on the field's clock (``now``: its time), logged."""
+        credited = []
+        for ev in pressed:
+            t, episode, step = self.credit_time(ev.time, now)
+            credited.append(
+                FeedbackEvent(time=t, value=ev.value, source=ev.source, step=step, episode=episode)
+            )
+        return credited if self.log is None else self.log.extend(credited)
+
+    def log_left(self, pressed: list[FeedbackEvent]) -> None:
+        """Log the presses left in the queue when the run stops (``TeachingSession.log_left``), on the
+        field's clock of the last poll; nobody learns from them in this run."""
+        self._credited(pressed, self._now)
+
     def poll(self, clock: Tensor) -> tuple[Tensor, Tensor]:
         """The next press on the watched field: values [B] float64 (0: none) and simulated times [B]."""
         pressed = self.queue.drain()
+        self._now = float(clock[self.field])
         if pressed:
-            now = float(clock[self.field])
-            credited = []
-            for ev in pressed:
-                t, episode, step = self.credit_time(ev.time, now)
-                credited.append(
-                    FeedbackEvent(time=t, value=ev.value, source=ev.source, step=step, episode=episode)
-                )
-            if self.log is not None:
-                credited = self.log.extend(credited)
+            credited = self._credited(pressed, self._now)
             self.waiting.extend(credited)
             self.given += len(credited)
             self.positive += sum(ev.value > 0 for ev in credited)

@@ -36,7 +36,18 @@ class LiveTeaching:
     def url(self) -> str:
         return self.server.url
 
-    def stop(self) -> None:
-        """Stop the server; the session's queue stops taking events."""
+    def stop(self) -> int:
+        """Stop the server (its pages closed first, so no press is acknowledged after), close the queue,
+        and write every press still in it to the feedback log, so that each press a page was told was
+        taken is in the log. Returns how many were written; idempotent. Call it before closing the log."""
         self.server.stop()
-        self.session.queue.close()
+        queue = self.session.queue
+        queue.close()
+        left = queue.drain()
+        if not left:
+            return 0
+        if self.session.log_left is not None:
+            self.session.log_left(left)
+        elif self.trainer.log is not None:
+            self.trainer.log.extend([self.trainer.label(ev) for ev in left])
+        return len(left)

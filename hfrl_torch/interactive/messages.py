@@ -1,20 +1,25 @@
 """What the page may send, checked before anything acts on it: type, fields, value ranges, size.
 
 A message is one JSON object per WebSocket text frame. Anything else (binary frames, oversized frames,
-bad JSON, unknown types, missing or extra fields, out-of-range values) raises ``MessageError`` with one
-line naming the bad value and what is allowed; the server logs it, answers with an error message and
-goes on.
+bad JSON, JSON nested deeper than :data:`MAX_DEPTH`, integers of more than :data:`MAX_INT_DIGITS` digits,
+NaN/Infinity, unknown types, wrong types, missing or extra fields, out-of-range values) raises
+``MessageError`` with one line naming the bad value (shortened) and what is allowed; the server counts it,
+answers with an error message and goes on. Nothing in here raises anything else, whatever the text.
 """
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from typing import Any
 
+from hfrl_torch.common.bounded_json import JSONBoundsError, loads_bounded
+
 MIN_SPEED = 0.5  # actions per second
 MAX_SPEED = 20.0
+MAX_DEPTH = 4  # messages are flat objects
+MAX_INT_DIGITS = 6
+MAX_NUMBER_CHARS = 32
 
 
 class MessageError(ValueError):
@@ -59,47 +64,59 @@ _FIELDS: dict[str, tuple[str, ...]] = {
 }
 
 
+def shown(value: object, limit: int = 40) -> str:
+    """``repr(value)``, shortened to about ``limit`` characters (error lines stay short)."""
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
 def _number(obj: dict[str, Any], key: str) -> float:
     v = obj[key]
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-        raise MessageError(f"{key}={v!r} is invalid: must be a finite number")
+        raise MessageError(f"{key}={shown(v)} is invalid: must be a finite number")
     return float(v)
 
 
 def _flag(obj: dict[str, Any], key: str) -> bool:
     v = obj[key]
     if not isinstance(v, bool):
-        raise MessageError(f"{key}={v!r} is invalid: must be true or false")
+        raise MessageError(f"{key}={shown(v)} is invalid: must be true or false")
     return v
 
 
 def parse_message(raw: str | bytes, max_bytes: int = 1024) -> Message:
     """The message in ``raw`` (one WebSocket text frame), or ``MessageError``."""
-    size = len(raw.encode() if isinstance(raw, str) else raw)
+    if not isinstance(raw, (str, bytes)):
+        raise MessageError(f"message is a {type(raw).__name__}; allowed: one JSON object as text")
+    size = len(raw.encode("utf-8", "surrogatepass") if isinstance(raw, str) else raw)
     if size > max_bytes:
         raise MessageError(f"message of {size} bytes is too large; allowed: at most {max_bytes}")
     try:
-        obj = json.loads(raw)
-    except (ValueError, UnicodeDecodeError):
-        raise MessageError("message is not valid JSON; allowed: one JSON object") from None
+        obj = loads_bounded(raw, MAX_DEPTH, MAX_INT_DIGITS, MAX_NUMBER_CHARS)
+    except JSONBoundsError as e:
+        if e.syntax:
+            raise MessageError("message is not valid JSON; allowed: one JSON object") from None
+        raise MessageError(f"message holds {e}") from None
     if not isinstance(obj, dict):
         raise MessageError(f"message is a JSON {type(obj).__name__}; allowed: one JSON object")
     kind = obj.get("type")
-    if kind not in _FIELDS:
-        raise MessageError(f"type={kind!r} is invalid; allowed: {', '.join(_FIELDS)}")
+    if not isinstance(kind, str) or kind not in _FIELDS:
+        raise MessageError(f"type={shown(kind)} is invalid; allowed: {', '.join(_FIELDS)}")
     expected = {"type", *_FIELDS[kind]}
     if set(obj) != expected:
-        raise MessageError(f"a {kind} message has fields {sorted(obj)}; allowed: exactly {sorted(expected)}")
+        fields = shown(sorted(obj), 80)
+        raise MessageError(f"a {kind} message has fields {fields}; allowed: exactly {sorted(expected)}")
     if kind == "feedback":
         value = _number(obj, "value")
         if value not in (1.0, -1.0):
-            raise MessageError(f"value={obj['value']!r} is invalid; allowed: 1 (good) or -1 (bad)")
+            raise MessageError(f"value={shown(obj['value'])} is invalid; allowed: 1 (good) or -1 (bad)")
         return Feedback(value)
     if kind == "speed":
         speed = _number(obj, "actions_per_s")
         if not MIN_SPEED <= speed <= MAX_SPEED:
             raise MessageError(
-                f"actions_per_s={obj['actions_per_s']!r} is invalid: must be in {MIN_SPEED:g}..{MAX_SPEED:g}"
+                f"actions_per_s={shown(obj['actions_per_s'])} is invalid: "
+                f"must be in {MIN_SPEED:g}..{MAX_SPEED:g}"
             )
         return Speed(speed)
     if kind == "pause":

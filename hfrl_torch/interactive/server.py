@@ -1,31 +1,56 @@
-"""The local web server of the browser trainer (aiohttp): the page, its static files and one WebSocket.
+"""The local web server of the browser trainer (aiohttp): the page, its static files and its WebSocket.
 
-It runs in its own thread with its own event loop, so training never waits for the network. Every message
-from a page is checked (``messages.parse_message``) and rate-limited; a rejected message is logged and
-answered with an ``error`` message, and the connection stays open. The server binds to 127.0.0.1 by
-default; any other address needs the access token, which is part of the printed URL.
+It runs in its own thread with its own event loop, so training never waits for the network. What it lets
+in (docs/security.md has the whole model):
+
+* **Host**: every request's ``Host`` header must name this server: the bound address and port
+  (``localhost`` too on loopback; on a wildcard address any IP literal, this machine's names and
+  ``allowed_hosts``). A DNS name that merely points here (DNS rebinding) is refused with 400.
+* **Origin**: a WebSocket must come from the page served here: ``Origin`` must be ``http://`` plus the
+  request's own Host. ``null``, ``file://``, foreign and missing origins are refused with 403.
+* **Token**: off loopback the page and the WebSocket need the access token of the printed URL (403
+  otherwise, also for a token that is not ASCII).
+* **Connections**: at most ``max_connections`` pages at once (503 beyond). The first
+  ``max_teachers`` (one by default) teach; the others only watch: they get the frames, and every message
+  they send is answered with an error. When a teaching page closes, the oldest watching page teaches.
+* **Messages**: one rate limit for the whole session (all pages, reconnections included); every
+  message is checked (``messages.parse_message``: types, bounded numbers, size); anything rejected is
+  answered with an ``error`` message and the connection stays open; nothing a page sends can raise out
+  of the handler.
+* **Logging**: rejections are counted and logged as one line per ``rejection_log_s`` seconds at most,
+  so a flood cannot grow train.log.
+
+:meth:`TeachingServer.stop` closes the open pages first, then the server: it returns within about a
+second with pages open, and no message is acknowledged after it returns.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import ipaddress
 import logging
 import secrets
+import socket
 import threading
 import time
+from collections import Counter
+from collections.abc import Awaitable, Callable, Iterable
 from pathlib import Path
 from typing import Any
 
-from aiohttp import WSMsgType, web
+from aiohttp import WSCloseCode, WSMessage, WSMsgType, web
 
-from hfrl_torch.interactive.messages import MessageError, RateLimiter, parse_message
+from hfrl_torch.feedback.events import FeedbackQueueClosedError, FeedbackQueueFullError
+from hfrl_torch.interactive.messages import Feedback, MessageError, RateLimiter, parse_message, shown
 from hfrl_torch.interactive.session import TeachingSession
 
 STATIC = Path(__file__).parent / "static"
 LOG = logging.getLogger("hfrl_torch.interactive")
 FRAME_POLL_S = 0.02
 HARD_MAX_BYTES = 65536  # aiohttp closes a connection whose frame is larger than this
+CLOSE_TIMEOUT_S = 0.5  # how long closing a page waits for its answer
+STOP_TIMEOUT_S = 3.0
 
 
 def is_loopback(host: str) -> bool:
@@ -38,6 +63,98 @@ def is_loopback(host: str) -> bool:
         return False
 
 
+def is_wildcard(host: str) -> bool:
+    """Whether binding ``host`` listens on every address of the machine."""
+    return host in ("", "0.0.0.0", "::")
+
+
+def _is_ip(name: str) -> bool:
+    try:
+        ipaddress.ip_address(name)
+    except ValueError:
+        return False
+    return True
+
+
+def split_authority(value: str, default_port: int = 80) -> tuple[str, int] | None:
+    """``(host, port)`` of a Host header or an origin's ``host[:port]`` (host lower-case, IPv6 without
+    brackets); None if it is malformed."""
+    value = value.strip().lower()
+    if not value or not value.isascii() or any(c in value for c in "/?#@ \t\\"):
+        return None
+    if value.startswith("["):
+        end = value.find("]")
+        name, rest = value[1:end], value[end + 1 :]
+        if end < 0 or not _is_ip(name):
+            return None
+    else:
+        name, sep, port = value.rpartition(":")
+        name, rest = (name, f":{port}") if sep else (value, "")
+        if not name or ":" in name:
+            return None
+    if not rest:
+        return name, default_port
+    digits = rest[1:]
+    if not (rest.startswith(":") and digits.isdigit() and 1 <= len(digits) <= 5 and int(digits) <= 65535):
+        return None
+    return name, int(digits)
+
+
+class RejectionLog:
+    """Counts what was refused, by kind, and logs it as one line per ``interval`` seconds at most."""
+
+    def __init__(self, interval: float = 10.0, clock: Callable[[], float] = time.monotonic) -> None:
+        self.interval = interval
+        self.clock = clock
+        self.counts: Counter[str] = Counter()
+        self.examples: dict[str, str] = {}
+        self.total = 0
+        self.lines = 0
+        self._since = clock()
+
+    def add(self, kind: str, why: str) -> None:
+        """Count one refusal of ``kind``; the first ``why`` of each kind is kept as its example."""
+        self.counts[kind] += 1
+        self.examples.setdefault(kind, why if len(why) <= 160 else why[:157] + "...")
+        self.total += 1
+
+    def flush(self) -> str | None:
+        """Log (one warning) and forget what was counted since the last flush; returns the line."""
+        now = self.clock()
+        if not self.counts:
+            self._since = now
+            return None
+        n = sum(self.counts.values())
+        parts = [f"{c} {kind} (e.g. {self.examples[kind]})" for kind, c in self.counts.most_common()]
+        line = f"refused {n} requests or messages from pages in {now - self._since:.1f} s: " + "; ".join(
+            parts
+        )
+        LOG.warning("%s", line)
+        self.counts.clear()
+        self.examples.clear()
+        self.lines += 1
+        self._since = now
+        return line
+
+
+class _CountingLogger(logging.Logger):
+    """aiohttp's server logger: what it would log (malformed requests, mostly) is counted instead."""
+
+    def __init__(self, server: TeachingServer) -> None:
+        super().__init__("hfrl_torch.interactive.http")
+        self.server = server
+
+    def _log(self, level: int, msg: object, args: Any, exc_info: Any = None, **kwargs: Any) -> None:
+        text = str(msg) % args if args else str(msg)
+        error = exc_info[1] if isinstance(exc_info, tuple) else exc_info
+        if isinstance(error, BaseException):
+            text += f": {type(error).__name__}: {' '.join(str(error).split())}"
+        if text.startswith("Unhandled exception"):
+            self.server._unhandled(error if isinstance(error, BaseException) else RuntimeError(text))
+        else:
+            self.server.rejections.add("bad HTTP request", text)
+
+
 class TeachingServer:
     """Serves the page and relays between it and a :class:`TeachingSession`.
 
@@ -48,7 +165,12 @@ class TeachingServer:
     :param keys: the page's key bindings: ``good``, ``bad``, ``pause``, ``presence``.
     :param view: ``tetris`` or ``keepaway``, what the page draws.
     :param max_message_bytes: largest message accepted.
-    :param max_messages_per_s: rate limit per page (bursts of twice as many).
+    :param max_messages_per_s: rate limit of the session, all pages together (bursts of twice as many).
+    :param max_teachers: pages that may teach at once; later pages only watch.
+    :param max_connections: pages open at once, teaching or watching; more are refused.
+    :param allowed_hosts: more names the page may be reached by (e.g. the machine's name on the LAN).
+    :param rejection_log_s: seconds between the log lines that count rejections.
+    :param clock: the rate limit's clock (seconds; ``time.monotonic``).
     """
 
     def __init__(
@@ -61,7 +183,19 @@ class TeachingServer:
         view: str = "tetris",
         max_message_bytes: int = 1024,
         max_messages_per_s: float = 20.0,
+        max_teachers: int = 1,
+        max_connections: int = 4,
+        allowed_hosts: Iterable[str] = (),
+        rejection_log_s: float = 10.0,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
+        if not 1 <= max_teachers <= max_connections:
+            raise ValueError(
+                f"TeachingServer needs 1 <= max_teachers <= max_connections, got {max_teachers} and "
+                f"{max_connections}"
+            )
+        if not rejection_log_s > 0:
+            raise ValueError(f"TeachingServer rejection_log_s must be > 0, got {rejection_log_s!r}")
         if token is None and not is_loopback(host):
             token = secrets.token_urlsafe(16)
         self.session = session
@@ -72,6 +206,19 @@ class TeachingServer:
         self.view = view
         self.max_message_bytes = max_message_bytes
         self.max_messages_per_s = max_messages_per_s
+        self.max_teachers = max_teachers
+        self.max_connections = max_connections
+        self.allowed_hosts = {h.strip().lower().strip("[]") for h in allowed_hosts}
+        self.clock = clock
+        self.rejections = RejectionLog(rejection_log_s)
+        self.errors = 0  # exceptions caught that a page's input caused (a bug if ever > 0)
+        self._limiter = RateLimiter(max_messages_per_s, int(2 * max_messages_per_s))
+        self._teachers: list[web.WebSocketResponse] = []
+        self._watchers: list[web.WebSocketResponse] = []
+        self._open = 0
+        self._closing = False
+        self._background: set[asyncio.Future[bool]] = set()
+        self._hosts: set[str] = set()
         self._loop: asyncio.AbstractEventLoop | None = None
         self._runner: web.AppRunner | None = None
         self._thread: threading.Thread | None = None
@@ -85,58 +232,206 @@ class TeachingServer:
         query = f"?token={self.token}" if self.token else ""
         return f"http://{host}:{self.port}/{query}"
 
-    def _authorised(self, request: web.Request) -> bool:
-        return self.token is None or secrets.compare_digest(request.query.get("token", ""), self.token)
+    @property
+    def teachers(self) -> int:
+        """Pages teaching now."""
+        return len(self._teachers)
+
+    @property
+    def watchers(self) -> int:
+        """Pages only watching now."""
+        return len(self._watchers)
+
+    # --- who may connect ---
+
+    def _names(self) -> set[str]:
+        names = {self.host.lower().strip("[]"), *self.allowed_hosts}
+        if is_loopback(self.host):
+            names.add("localhost")
+        if is_wildcard(self.host):
+            names |= {"localhost", socket.gethostname().lower(), socket.getfqdn().lower()}
+        return names
+
+    def _host_ok(self, where: tuple[str, int] | None) -> bool:
+        if where is None or where[1] != self.port:
+            return False
+        name = where[0]
+        return name in self._hosts or (is_wildcard(self.host) and _is_ip(name))
+
+    def _token_ok(self, request: web.Request) -> bool:
+        if self.token is None:
+            return True
+        try:
+            given = request.query.get("token", "")
+        except Exception:  # a query aiohttp cannot decode
+            return False
+        return secrets.compare_digest(given.encode("utf-8", "surrogatepass"), self.token.encode("utf-8"))
+
+    def _origin_ok(self, origin: str | None, where: tuple[str, int] | None) -> bool:
+        if origin is None or where is None:
+            return False
+        scheme, sep, rest = origin.partition("://")
+        return bool(sep) and scheme.lower() == "http" and split_authority(rest) == where
+
+    def _refusal(self, request: web.Request) -> web.Response | None:
+        """The answer to a request that may not be served (None: it may)."""
+        host = request.headers.get("Host")
+        where = split_authority(host) if host is not None else None
+        if not self._host_ok(where):
+            allowed = (
+                f"{self.host}:{self.port}" if not is_wildcard(self.host) else f"<this machine>:{self.port}"
+            )
+            return self._refuse(
+                400, "bad Host", f"Host header {shown(host)} does not name this server; allowed: {allowed}"
+            )
+        if request.path in ("/", "/ws") and not self._token_ok(request):
+            return self._refuse(
+                403, "bad token", "access token missing or wrong: use the URL train.py printed"
+            )
+        if request.path == "/ws" and not self._origin_ok(request.headers.get("Origin"), where):
+            return self._refuse(
+                403,
+                "bad Origin",
+                f"Origin {shown(request.headers.get('Origin'))} is not this page's: only the page served "
+                f"here may connect",
+            )
+        return None
+
+    def _refuse(self, status: int, kind: str, why: str) -> web.Response:
+        self.rejections.add(kind, why)
+        return web.Response(status=status, text=why)
+
+    @web.middleware
+    async def _guard(
+        self, request: web.Request, handler: Callable[[web.Request], Awaitable[web.StreamResponse]]
+    ) -> web.StreamResponse:
+        refusal = self._refusal(request)
+        if refusal is not None:
+            return refusal
+        try:
+            return await handler(request)
+        except web.HTTPException:
+            raise
+        except Exception as e:
+            self._unhandled(e)
+            return web.Response(status=500, text="internal error")
+
+    # --- pages ---
 
     async def _index(self, request: web.Request) -> web.StreamResponse:
-        if not self._authorised(request):
-            return web.Response(
-                status=403, text="access token missing or wrong: use the URL train.py printed"
-            )
         return web.FileResponse(STATIC / "index.html")
 
     async def _ws(self, request: web.Request) -> web.StreamResponse:
-        if not self._authorised(request):
-            return web.Response(status=403, text="access token missing or wrong")
-        ws = web.WebSocketResponse(max_msg_size=HARD_MAX_BYTES, heartbeat=20.0)
-        await ws.prepare(request)
+        if self._closing:
+            return self._refuse(503, "server stopping", "the training run is stopping")
+        if self._open >= self.max_connections:
+            return self._refuse(
+                503, "too many pages", f"{self._open} pages are open; allowed: at most {self.max_connections}"
+            )
+        ws = web.WebSocketResponse(max_msg_size=HARD_MAX_BYTES, heartbeat=20.0, timeout=CLOSE_TIMEOUT_S)
+        self._open += 1
+        try:
+            await ws.prepare(request)
+        except BaseException:
+            self._open -= 1
+            raise
+        teaching = len(self._teachers) < self.max_teachers
+        (self._teachers if teaching else self._watchers).append(ws)
         self.session.connect()
         sender = asyncio.ensure_future(self._send_frames(ws))
-        limiter = RateLimiter(self.max_messages_per_s, int(2 * self.max_messages_per_s))
         try:
-            await ws.send_json({"type": "config", "keys": self.keys, "view": self.view})
-            await ws.send_json(self.session.settings())
+            await self._send(ws, {"type": "config", "keys": self.keys, "view": self.view})
+            await self._send(ws, self.session.settings())
+            await self._send(ws, self._role(teaching))
             async for msg in ws:
-                if msg.type == WSMsgType.TEXT:
-                    await self._handle(ws, msg.data, limiter)
-                elif msg.type == WSMsgType.BINARY:
-                    await self._reject(ws, "binary frames are not accepted; allowed: JSON text")
-                elif msg.type == WSMsgType.ERROR:
-                    LOG.warning("websocket closed with an error: %s", ws.exception())
+                try:
+                    await self._on_message(ws, msg)
+                except Exception as e:  # never lets one message drop the connection
+                    self._unhandled(e)
+                    await self._send(
+                        ws, {"type": "error", "message": "internal error; the message was ignored"}
+                    )
         finally:
             sender.cancel()
+            self._forget(ws)
+            self._open -= 1
             self.session.disconnect()
         return ws
 
-    async def _handle(self, ws: web.WebSocketResponse, data: str, limiter: RateLimiter) -> None:
-        if not limiter.allow(time.monotonic()):
-            await self._reject(ws, f"too many messages; allowed: {self.max_messages_per_s:g} per second")
+    @staticmethod
+    def _role(teaching: bool) -> dict[str, str]:
+        if teaching:
+            return {"type": "role", "role": "teach", "text": "connected: you are teaching"}
+        return {"type": "role", "role": "watch", "text": "watching only: another page is teaching"}
+
+    def _forget(self, ws: web.WebSocketResponse) -> None:
+        if ws in self._watchers:
+            self._watchers.remove(ws)
+        if ws in self._teachers:
+            self._teachers.remove(ws)
+            while self._watchers and len(self._teachers) < self.max_teachers and not self._closing:
+                promoted = self._watchers.pop(0)
+                self._teachers.append(promoted)
+                task = asyncio.ensure_future(self._send(promoted, self._role(True)))
+                self._background.add(task)
+                task.add_done_callback(self._background.discard)
+
+    async def _on_message(self, ws: web.WebSocketResponse, msg: WSMessage) -> None:
+        if msg.type == WSMsgType.TEXT:
+            await self._text(ws, msg.data)
+        elif msg.type == WSMsgType.BINARY:
+            await self._reject(ws, "binary", "binary frames are not accepted; allowed: JSON text")
+        elif msg.type == WSMsgType.ERROR:
+            self.rejections.add("connection error", f"websocket closed with an error: {ws.exception()}")
+
+    async def _text(self, ws: web.WebSocketResponse, data: str) -> None:
+        if ws not in self._teachers:
+            await self._reject(
+                ws, "watch-only", "this page only watches: another page is teaching (one at a time)"
+            )
+            return
+        if not self._limiter.allow(self.clock()):
+            await self._reject(
+                ws, "rate limit", f"too many messages; allowed: {self.max_messages_per_s:g} per second"
+            )
             return
         try:
             message = parse_message(data, self.max_message_bytes)
         except MessageError as e:
-            await self._reject(ws, str(e))
+            await self._reject(ws, "invalid", str(e))
             return
-        self.session.apply(message)
-        await ws.send_json({"type": "ack", "message": type(message).__name__.lower()})
-        if type(message).__name__ != "Feedback":
-            await ws.send_json(self.session.settings())
+        try:
+            self.session.apply(message)
+        except (FeedbackQueueFullError, FeedbackQueueClosedError) as e:
+            await self._reject(ws, "not taken", f"feedback not taken: {e}")
+            return
+        await self._send(ws, {"type": "ack", "message": type(message).__name__.lower()})
+        if not isinstance(message, Feedback):
+            settings = self.session.settings()
+            for page in [*self._teachers, *self._watchers]:
+                await self._send(page, settings)
 
-    async def _reject(self, ws: web.WebSocketResponse, why: str) -> None:
+    async def _reject(self, ws: web.WebSocketResponse, kind: str, why: str) -> None:
         self.session.reject()
-        LOG.warning("rejected a message from the page: %s", why)
-        if not ws.closed:
-            await ws.send_json({"type": "error", "message": why})
+        self.rejections.add(kind, why)
+        await self._send(ws, {"type": "error", "message": why})
+
+    def _unhandled(self, error: BaseException | None) -> None:
+        self.errors += 1
+        self.rejections.add("internal error", repr(error))
+        if self.errors == 1:
+            LOG.error("browser trainer server: unexpected error", exc_info=error)
+
+    @staticmethod
+    async def _send(ws: web.WebSocketResponse, obj: dict[str, Any]) -> bool:
+        """Send ``obj``; False (and nothing raised) if the page has gone."""
+        if ws.closed:
+            return False
+        try:
+            await ws.send_json(obj)
+        except (ConnectionError, RuntimeError):  # closing under us
+            return False
+        return True
 
     async def _send_frames(self, ws: web.WebSocketResponse) -> None:
         sent, sent_curve = -1, 0
@@ -144,31 +439,47 @@ class TeachingServer:
             version, frame = self.session.latest()
             if version != sent:
                 sent = version
-                await ws.send_json(frame)
+                if not await self._send(ws, frame):
+                    return
             curve_version, curve = self.session.latest_curve()
             if curve_version != sent_curve:
                 sent_curve = curve_version
-                await ws.send_json(curve)
+                if not await self._send(ws, curve):
+                    return
             await asyncio.sleep(FRAME_POLL_S)
 
+    async def _log_rejections(self) -> None:
+        while True:
+            await asyncio.sleep(self.rejections.interval)
+            self.rejections.flush()
+
+    # --- running ---
+
     def _app(self) -> web.Application:
-        app = web.Application()
+        app = web.Application(middlewares=[self._guard])
         app.router.add_get("/", self._index)
         app.router.add_get("/ws", self._ws)
         app.router.add_static("/static/", STATIC)
         return app
 
+    def _loop_error(self, loop: asyncio.AbstractEventLoop, context: dict[str, Any]) -> None:
+        self._unhandled(context.get("exception") or RuntimeError(str(context.get("message"))))
+
     def _serve(self) -> None:
         loop = asyncio.new_event_loop()
         self._loop = loop
         asyncio.set_event_loop(loop)
+        loop.set_exception_handler(self._loop_error)
 
         async def start() -> None:
-            self._runner = web.AppRunner(self._app(), access_log=None)
+            self._runner = web.AppRunner(
+                self._app(), access_log=None, shutdown_timeout=CLOSE_TIMEOUT_S, logger=_CountingLogger(self)
+            )
             await self._runner.setup()
             site = web.TCPSite(self._runner, self.host, self.port)
             await site.start()
             self.port = int(self._runner.addresses[0][1])
+            self._hosts = self._names()
 
         try:
             loop.run_until_complete(start())
@@ -176,10 +487,30 @@ class TeachingServer:
             self._error = e
             self._started.set()
             return
+        flusher = loop.create_task(self._log_rejections())
         self._started.set()
         loop.run_forever()
-        loop.run_until_complete(self._runner.cleanup())
+        flusher.cancel()
+        if self._runner is not None:
+            loop.run_until_complete(self._runner.cleanup())
+        pending = [t for t in asyncio.all_tasks(loop) if not t.done()]
+        for task in pending:
+            task.cancel()
+        loop.run_until_complete(asyncio.gather(*pending, return_exceptions=True))
+        self.rejections.flush()
         loop.close()
+
+    async def _shutdown(self) -> None:
+        """Close every page (no message is handled after this), then the server."""
+        self._closing = True
+        pages = [*self._teachers, *self._watchers]
+        await asyncio.gather(
+            *(ws.close(code=WSCloseCode.GOING_AWAY, message=b"the training run stopped") for ws in pages),
+            return_exceptions=True,
+        )
+        if self._runner is not None:
+            runner, self._runner = self._runner, None
+            await runner.cleanup()
 
     def start(self) -> str:
         """Start serving in a daemon thread; returns the URL. Raises OSError if the address is unusable."""
@@ -191,11 +522,16 @@ class TeachingServer:
         return self.url
 
     def stop(self) -> None:
-        """Stop serving (open pages see the connection close)."""
-        if self._loop is not None and self._loop.is_running():
-            self._loop.call_soon_threadsafe(self._loop.stop)
-        if self._thread is not None:
-            self._thread.join(timeout=10)
+        """Close the open pages, then stop serving; idempotent. Call it from another thread than the
+        server's: once it returns, no message is acknowledged any more."""
+        loop, thread = self._loop, self._thread
+        if loop is None or thread is None or not thread.is_alive():
+            return
+        with contextlib.suppress(Exception):  # a shutdown slower than the timeout: the loop stops anyway
+            asyncio.run_coroutine_threadsafe(self._shutdown(), loop).result(timeout=STOP_TIMEOUT_S)
+        if loop.is_running():
+            loop.call_soon_threadsafe(loop.stop)
+        thread.join(timeout=STOP_TIMEOUT_S)
 
     def __enter__(self) -> TeachingServer:
         self.start()

@@ -4,6 +4,11 @@ The training loop runs in the main thread, the web server in its own; this objec
 both touch, behind one lock. Feedback from the page becomes a ``FeedbackEvent`` stamped with the loop's
 clock (``time.time()``) on arrival, goes into a ``FeedbackQueue`` that a ``QueueTrainer`` drains each
 step, and from there into credit assignment and the feedback log like any trainer's events.
+
+A press the page is told was taken (``ack``) is in the queue: a full queue (the loop has not drained it
+for a long time) or a closed one (the run is stopping) refuses it instead, and the page is told so. What
+the queue still holds when the run stops is written to the feedback log by ``LiveTeaching.stop``, through
+:attr:`TeachingSession.log_left` when the trainer that drains the queue sets it.
 """
 
 from __future__ import annotations
@@ -37,7 +42,10 @@ class TeachingSession:
             raise ValueError(
                 f"actions_per_s={actions_per_s!r} is invalid: must be in {MIN_SPEED:g}..{MAX_SPEED:g}"
             )
-        self.queue = FeedbackQueue()
+        self.queue = FeedbackQueue(overflow="error")  # a press acknowledged is never dropped
+        self.log_left: Callable[[list[FeedbackEvent]], object] | None = None
+        """Writes the presses left in the queue when the run stops to the feedback log (set by the trainer
+        that drains the queue and knows how to credit them; None: ``LiveTeaching``'s ``QueueTrainer``)."""
         self.clock = clock
         self.sleep = sleep
         self._cond = threading.Condition()
@@ -68,9 +76,9 @@ class TeachingSession:
             self._cond.notify_all()
 
     def apply(self, message: Message) -> None:
-        """Act on one validated message from the page."""
+        """Act on one validated message from the page; a press the queue cannot take raises its
+        ``FeedbackQueueFullError`` or ``FeedbackQueueClosedError`` (and nothing changes)."""
         with self._cond:
-            self.received += 1
             if isinstance(message, Feedback):
                 self.queue.put(FeedbackEvent(time=self.clock(), value=message.value, source=SOURCE))
             elif isinstance(message, Speed):
@@ -79,6 +87,7 @@ class TeachingSession:
                 self.paused = message.paused
             elif isinstance(message, Presence):
                 self.here = message.here
+            self.received += 1
             self._cond.notify_all()
 
     def reject(self) -> None:

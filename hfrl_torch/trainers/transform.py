@@ -1,4 +1,4 @@
-"""``HumanFeedback``: a trainer on the TorchRL data path, as a transform that writes its feedback into ``next``.
+"""``HumanFeedback``: a trainer on the TorchRL data path, a transform that writes its feedback into ``next``.
 
 At each step the trainer (a simulated one, a replay, a person through the queue) judges the action taken in
 the step's state; its events go into a :class:`~hfrl_torch.feedback.channel.FeedbackChannel` and, once due
@@ -25,7 +25,7 @@ __all__ = ["HumanFeedback"]
 
 
 class HumanFeedback(Transform):
-    """Write a Tetris trainer's feedback into each step's ``next`` (K slots per board; see the module docstring).
+    """Write a Tetris trainer's feedback into each step's ``next`` (K slots per board; the module docstring).
 
     :param trainer: the trainer (``trainers.OracleTrainer``, ``HumanLikeTiming``, ``ReplayTrainer``...).
     :param seconds_per_step: the simulated clock's time per env step (a placement with its animation: 1 s).
@@ -74,10 +74,14 @@ class HumanFeedback(Transform):
     def transform_observation_spec(self, observation_spec: TensorSpec) -> TensorSpec:
         shape, device = (*observation_spec.shape, self.slots), observation_spec.device
         if not isinstance(observation_spec, Composite):
-            raise TypeError(f"HumanFeedback expects a Composite observation spec, got {type(observation_spec)}")
+            raise TypeError(
+                f"HumanFeedback expects a Composite observation spec, got {type(observation_spec)}"
+            )
         observation_spec[keys.FEEDBACK] = Unbounded(shape=shape, dtype=torch.float64, device=device)
         observation_spec[keys.FEEDBACK_TIME] = Unbounded(shape=shape, dtype=torch.float64, device=device)
-        observation_spec[keys.FEEDBACK_MASK] = Binary(n=self.slots, shape=shape, dtype=torch.bool, device=device)
+        observation_spec[keys.FEEDBACK_MASK] = Binary(
+            n=self.slots, shape=shape, dtype=torch.bool, device=device
+        )
         observation_spec[keys.FEEDBACK_SOURCE] = Unbounded(shape=shape, dtype=torch.int64, device=device)
         return observation_spec
 
@@ -98,4 +102,5 @@ class HumanFeedback(Transform):
             self._games = state["games"].clone()
 
     def __repr__(self) -> str:
-        return f"{type(self).__name__}(trainer={type(self.trainer).__name__}, seconds_per_step={self.seconds_per_step})"
+        trainer = type(self.trainer).__name__
+        return f"{type(self).__name__}(trainer={trainer}, seconds_per_step={self.seconds_per_step})"

@@ -1,4 +1,4 @@
-"""The feedback channel: events wait on each board's clock, then enter the tensordict, oldest first, K at a time."""
+"""The feedback channel: events wait on each board's clock, then enter the tensordict, oldest first."""
 
 from __future__ import annotations
 
@@ -39,8 +39,12 @@ def test_zero_values_are_no_events_and_the_slots_come_oldest_first():
     ch.put(torch.tensor([0.0]), torch.tensor([0.0]), "simulated:oracle")
     assert ch.pending == 3
     first = ch.deliver(10.0)
-    assert first[keys.FEEDBACK_TIME].tolist() == [[1.0, 2.0]] and first[keys.FEEDBACK].tolist() == [[-1.0, 1.0]]
-    assert first[keys.FEEDBACK_SOURCE].tolist() == [[SOURCE_KINDS.index("simulated"), SOURCE_KINDS.index("human")]]
+    assert first[keys.FEEDBACK_TIME].tolist() == [[1.0, 2.0]] and first[keys.FEEDBACK].tolist() == [
+        [-1.0, 1.0]
+    ]
+    assert first[keys.FEEDBACK_SOURCE].tolist() == [
+        [SOURCE_KINDS.index("simulated"), SOURCE_KINDS.index("human")]
+    ]
     second = ch.deliver(10.0)  # more due than K slots: the rest come next time, in order
     assert second[keys.FEEDBACK_TIME][0, 0] == 3.0 and second[keys.FEEDBACK_MASK].tolist() == [[True, False]]
     assert not ch.deliver(math.inf)[keys.FEEDBACK_MASK].any()
@@ -61,7 +65,7 @@ def test_state_round_trips_the_waiting_events():
     fresh = FeedbackChannel(2)
     fresh.load_state_dict(ch.state_dict())
     a, b = ch.deliver(torch.tensor([6.0, 6.0])), fresh.deliver(torch.tensor([6.0, 6.0]))
-    assert all(torch.equal(a[k].nan_to_num(), b[k].nan_to_num()) for k in a.keys())
+    assert all(torch.equal(a[k].nan_to_num(), b[k].nan_to_num()) for k in a)
     with pytest.raises(CheckpointError, match="3 boards"):
         FeedbackChannel(3).load_state_dict(ch.state_dict())
     with pytest.raises(CheckpointError, match="feedback channel"):
@@ -80,7 +84,9 @@ def test_bad_shapes_and_sizes_are_refused():
 @settings(max_examples=60, deadline=None)
 @given(
     st.lists(
-        st.tuples(st.integers(0, 2), st.floats(0.0, 50.0), st.sampled_from([-1.0, 1.0])), min_size=1, max_size=40
+        st.tuples(st.integers(0, 2), st.floats(0.0, 50.0), st.sampled_from([-1.0, 1.0])),
+        min_size=1,
+        max_size=40,
     ),
     st.lists(st.floats(0.0, 60.0), min_size=1, max_size=8),
 )

@@ -32,8 +32,8 @@ def test_event_fields_defaults_and_coercion():
     assert (ev.time, ev.value, ev.step, ev.episode) == (12.5, 1.0, 3, 2)
     assert type(ev.time) is float and type(ev.value) is float
     bare = FeedbackEvent(time=1.0, value=-1.0, source="replay")
-    assert (bare.session, bare.step, bare.episode) == ("", -1, -1)
-    assert list(ev.to_dict()) == ["time", "step", "episode", "value", "source", "session"]
+    assert (bare.session, bare.step, bare.episode, bare.seq) == ("", -1, -1, -1)
+    assert list(ev.to_dict()) == ["time", "step", "episode", "value", "source", "session", "seq"]
     with pytest.raises(dataclasses.FrozenInstanceError):
         ev.value = 2.0  # type: ignore[misc]
 

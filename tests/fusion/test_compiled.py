@@ -30,13 +30,15 @@ def _fusion(option: str, weight: float = 0.5, scaling: str = "decision") -> Fusi
 def test_rule_codes_come_from_the_component():
     import hfrl_torch.fusion.compiled as compiled
 
-    assert (compiled.ENV_ONLY, compiled.HUMAN_ONLY, compiled.ADDITIVE) == tuple(
-        COMPILED_RULES[k] for k in ("none", "human_only", "linear")
+    assert tuple(COMPILED_RULES[k] for k in ("none", "human_only", "linear")) == (
+        compiled.ENV_ONLY,
+        compiled.HUMAN_ONLY,
+        compiled.ADDITIVE,
     )
-    assert (compiled.EXPONENTIAL, compiled.CONTROL_SHARING) == (
+    assert (
         COMPILED_RULES["exponential"],
         COMPILED_RULES["control_sharing"],
-    )
+    ) == (compiled.EXPONENTIAL, compiled.CONTROL_SHARING)
     for option, rules in OPTIONS.items():
         assert _fusion(option).compiled_rule == COMPILED_RULES[rules.decision]
 
@@ -67,8 +69,8 @@ def test_h_over_feature_changes_acts_as_the_same_afterstate_policy():
     [("linear", 0.7), ("exponential", 1.5), ("reward_shaping", 0.2), ("annealed", 0.4), ("human_only", 0.0)],
 )
 def test_kernel_chooses_and_counts_as_the_env_through_the_fusion_module(option, weight):
-    """The same games through TetrisEnv (knox features) + FusionModule and through the kernel, with one Fusion:
-    the same placements, lines, H^ returns and match counts."""
+    """The same games through TetrisEnv (knox features) + FusionModule and through the kernel, with one
+    Fusion: the same placements, lines, H^ returns and match counts."""
     boards, cap = 4, 40
     env_w = _weights(1, 17, 2)[0]
     human_w = _weights(1, 38, 3)[0] / 10

@@ -10,8 +10,8 @@ import pytest
 import torch
 
 from hfrl_torch.common.errors import CheckpointError
-from hfrl_torch.fusion.trust import IncrementalTrust, MatchCounter
 from hfrl_torch.fusion import AnnealedWeight, ConstantWeight, TrustWeight, as_schedule
+from hfrl_torch.fusion.trust import IncrementalTrust, MatchCounter
 
 
 def test_constant_weight_is_the_same_at_every_episode():

@@ -10,7 +10,6 @@ import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
 from tensordict import TensorDict
 
 from hfrl_torch import keys
@@ -79,10 +78,20 @@ def test_schemes_list_names_every_scheme_with_its_levels():
 
 
 def test_every_config_option_names_its_decision_and_reward_rules():
-    assert set(FUSIONS) == set(OPTIONS) == {
-        "none", "human_only", "linear", "exponential", "annealed", "action_biasing", "control_sharing",
-        "reward_shaping",
-    }
+    assert (
+        set(FUSIONS)
+        == set(OPTIONS)
+        == {
+            "none",
+            "human_only",
+            "linear",
+            "exponential",
+            "annealed",
+            "action_biasing",
+            "control_sharing",
+            "reward_shaping",
+        }
+    )
     assert all(o.decision in DECISION_SCHEMES and o.reward in REWARD_SCHEMES for o in OPTIONS.values())
     assert OPTIONS["reward_shaping"] == ("none", "reward_shaping")  # shaping acts on the reward only
     assert OPTIONS["annealed"].decision == OPTIONS["action_biasing"].decision == "linear"
@@ -304,7 +313,9 @@ def test_scales_decision_and_spread():
     torch.testing.assert_close(td[keys.FUSED_VALUES], torch.tensor([[10.0, 1.09]], dtype=torch.float64))
     # the exponential rule scales R by a factor of H^ alone: raw values under spread
     expo = _fusion("exponential", 1.0, scaling="spread")
-    torch.testing.assert_close(expo.fuse(_decisions(q, hh))[keys.FUSED_VALUES], fuse_values(q, hh, "exponential", 1.0))
+    torch.testing.assert_close(
+        expo.fuse(_decisions(q, hh))[keys.FUSED_VALUES], fuse_values(q, hh, "exponential", 1.0)
+    )
 
 
 def test_match_count_goes_through_the_fusion_and_feeds_the_trust():

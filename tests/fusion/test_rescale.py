@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import torch
-
 from tensordict import TensorDict
 
 from hfrl_torch import keys

@@ -205,7 +205,12 @@ def test_match_counter_counts_only_decisions_where_h_prefers_a_choosable_action(
     mc.count(r, h, choosable, torch.zeros(2, dtype=torch.int64))
     assert mc.compared.tolist() == [0]  # neither decision compares H^ and R
     # the best is the first best among the choosable actions: H^ picks 1, R picks 1 (row 2 of R masked at 0)
-    mc.count(_values([0.0, 2.0, 1.0]), _values([0.0, 5.0, 1.0]), torch.tensor([[False, True, True]]), torch.tensor([0]))
+    mc.count(
+        _values([0.0, 2.0, 1.0]),
+        _values([0.0, 5.0, 1.0]),
+        torch.tensor([[False, True, True]]),
+        torch.tensor([0]),
+    )
     assert (mc.matches.tolist(), mc.compared.tolist()) == ([1], [1])
 
 

@@ -24,10 +24,12 @@ from hfrl_torch.feedback.channel import FeedbackChannel
 from hfrl_torch.feedback.events import FeedbackEvent
 from hfrl_torch.feedback.log import FeedbackLog, load_feedback_log
 from hfrl_torch.interactive.keepaway_live import BrowserKeeperTrainer, KeepawayWatcher
-from hfrl_torch.interactive.live import DEFAULT_SPEED
+from hfrl_torch.interactive.live import DEFAULT_SPEED, LiveTeaching
 from hfrl_torch.interactive.messages import Feedback, Presence
+from hfrl_torch.interactive.server import TeachingServer
 from hfrl_torch.interactive.session import TeachingSession
 from hfrl_torch.models.tile_coding import TileCoding
+from hfrl_torch.trainers.queue_trainer import QueueTrainer
 
 CONFIG = KeepawayConfig(decision_period_cycles=5)
 
@@ -73,6 +75,22 @@ def test_presses_are_placed_on_the_fields_simulated_clock_and_logged(tmp_path):
     again = BrowserKeeperTrainer(session)
     again.load_state_dict(trainer.state_dict())
     assert again.given == 3
+
+
+def test_presses_left_in_the_queue_at_stop_are_logged_on_the_fields_clock(tmp_path):
+    _, _, session = _fake_clock()
+    log = FeedbackLog(tmp_path / "feedback.jsonl", session="run1")
+    trainer = BrowserKeeperTrainer(session, fields=1, log=log)
+    assert session.log_left == trainer.log_left
+    trainer.timeline.shown(100.0, 5.0, episode=2, step=4)
+    trainer.poll(torch.tensor([5.2], dtype=torch.float64))
+    _press(session, 100.4, 1.0)  # acknowledged, then the run stops before the next poll
+    _press(session, 100.5, -1.0)
+    teaching = LiveTeaching(TeachingServer(session, port=0), session, QueueTrainer(session.queue, log=log))
+    assert teaching.stop() == 2  # the server never started: stop only drains
+    log.close()
+    events = load_feedback_log(tmp_path / "feedback.jsonl")
+    assert [(e.value, e.time, e.episode, e.step) for e in events] == [(1.0, 5.2, 2, 4), (-1.0, 5.2, 2, 4)]
 
 
 def test_a_press_credits_the_decisions_in_its_window_in_h_hat():
@@ -178,7 +196,9 @@ def test_config_of_the_keepaway_browser_trainer():
     cfg = _cfg("trainer=interactive")
     validate_train(cfg)
     assert cfg.agent.learners == 1  # one person teaches one team: the config's own default
-    assert _cfg("trainer=interactive", "agent.learners=4").agent.learners == 4  # a value given wins (and fails)
+    assert (
+        _cfg("trainer=interactive", "agent.learners=4").agent.learners == 4
+    )  # a value given wins (and fails)
     assert (
         cfg.fusion.name == "linear" and cfg.trainer.actions_per_s is None and DEFAULT_SPEED["keepaway"] == 2.0
     )

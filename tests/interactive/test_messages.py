@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import random
 
 import pytest
 
@@ -44,7 +45,23 @@ def test_valid_messages(raw, expected):
         ('{"type": "feedback", "value": 1, "extra": 0}', "a feedback message has fields"),
         ('{"type": "feedback"}', "a feedback message has fields ['type']"),
         ('{"type": "speed", "actions_per_s": 100}', "actions_per_s=100 is invalid: must be in 0.5..20"),
-        ('{"type": "speed", "actions_per_s": NaN}', "actions_per_s=nan is invalid: must be a finite number"),
+        ('{"type": "speed", "actions_per_s": NaN}', "message holds NaN; allowed: finite numbers"),
+        (
+            '{"type": "speed", "actions_per_s": 1e400}',
+            "actions_per_s=inf is invalid: must be a finite number",
+        ),
+        ('{"type": "feedback", "value": -Infinity}', "message holds -Infinity; allowed: finite numbers"),
+        ('{"type":"feedback","value":' + "9" * 400 + "}", "an integer of 400 digits; allowed: at most 6"),
+        ('{"type": "speed", "actions_per_s": 1.' + "0" * 80 + "}", "a number of 82 characters"),
+        ('{"type": [], "value": 1}', "type=[] is invalid; allowed: feedback"),
+        ('{"type": {"a": 1}, "value": 1}', "type={'a': 1} is invalid"),
+        ('{"type": 5, "value": 1}', "type=5 is invalid"),
+        ("[" * 400 + "]" * 400, "message holds nested 400 deep; allowed: at most 4"),
+        (
+            '{"type": "feedback", "value": "' + "x" * 500 + '"}',
+            "value='" + "x" * 36 + "... is invalid",
+        ),
+        ('{"type": "pause", "paused": null}', "paused=None is invalid: must be true or false"),
         ('{"type": "pause", "paused": 1}', "paused=1 is invalid: must be true or false"),
     ],
 )
@@ -65,3 +82,30 @@ def test_rate_limiter_allows_bursts_then_the_rate():
     assert [limiter.allow(0.0) for _ in range(4)] == [True, True, True, False]
     assert limiter.allow(0.5)  # one token back after half a second at 2 per second
     assert not limiter.allow(0.5)
+
+
+def test_anything_the_page_sends_raises_message_error_only():
+    rng = random.Random(8)
+    atoms = [
+        '{"type": "feedback", "value": 1}',
+        "[",
+        "]",
+        "{",
+        "}",
+        '"',
+        ",",
+        ":",
+        "9" * 30,
+        "NaN",
+        "1e999",
+        "-",
+    ]
+    atoms += ["true", "null", '"type"', '"value"', '"speed"', "\\", "\u00e9", "\ud800", " "]
+    for _ in range(3000):
+        raw = "".join(rng.choice(atoms) for _ in range(rng.randint(0, 30)))
+        try:
+            parse_message(raw if rng.random() < 0.8 else raw.encode("utf-8", "surrogatepass"))
+        except MessageError as e:
+            assert "\n" not in str(e) and len(str(e)) < 200
+    with pytest.raises(MessageError, match="message is a int; allowed: one JSON object as text"):
+        parse_message(5)  # type: ignore[arg-type]

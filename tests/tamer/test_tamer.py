@@ -120,7 +120,12 @@ def test_tamer_learner_is_deterministic_and_counts_games(tmp_path, run_learner):
 
 def test_oracle_trained_tamer_clears_clearly_more_lines_than_untrained(tmp_path, run_learner):
     over = ["agent=tamer", "trainer=oracle", "agent.games=5", "agent.learners=10", "seed=0"]
-    over += ["domain.max_pieces=2000", "human.alpha=0.001", "trainer.frequency=1.0", "trainer.consistency=1.0"]
+    over += [
+        "domain.max_pieces=2000",
+        "human.alpha=0.001",
+        "trainer.frequency=1.0",
+        "trainer.consistency=1.0",
+    ]
     learner, _ = run_learner(tmp_path, *over, "trainer.timing.enabled=false")
     lines = learner.lines.double()
     first, later = lines[:, 0].mean(), lines[:, 2:].mean()

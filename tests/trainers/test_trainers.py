@@ -246,7 +246,13 @@ def test_timing_tails_off_as_lines_rise():
 
 def test_replay_reproduces_a_log_on_the_same_steps(tmp_path, run_learner):
     over = ["agent=tamer", "domain.width=8", "domain.height=8", "agent.games=3", "human.alpha=0.002"]
-    over += ["agent.learners=2", "seed=7", "domain.max_pieces=200", "trainer.reaction=0.2", "trainer.timing.enabled=false"]
+    over += [
+        "agent.learners=2",
+        "seed=7",
+        "domain.max_pieces=200",
+        "trainer.reaction=0.2",
+        "trainer.timing.enabled=false",
+    ]
     first, _ = run_learner(tmp_path / "first", *over, "trainer=oracle", "trainer.consistency=0.8")
     recorded = load_feedback_log(tmp_path / "first" / "feedback.jsonl")
     assert len(recorded) == int(first.given[..., 0].sum()) > 0

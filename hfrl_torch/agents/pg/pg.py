@@ -143,8 +143,8 @@ class PolicyGradient(nn.Module):
         terminal: torch.Tensor,
         values: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        """log pi(a | s) ``[L, A]`` of every placement (-inf where not allowed); ``values`` ``[L, A]`` replaces
-        theta . f before dividing by T (fused with H^: pi ~ exp((theta . f + w H^) / T))."""
+        """log pi(a | s) ``[L, A]`` of every placement (-inf where not allowed); ``values`` ``[L, A]``
+        replaces theta . f before dividing by T (fused with H^: pi ~ exp((theta . f + w H^) / T))."""
         logits = (self.values(features) if values is None else values.to(torch.float64)) / self.temperature
         return logits.masked_fill(~allowed_placements(mask, terminal), -torch.inf).log_softmax(-1)
 

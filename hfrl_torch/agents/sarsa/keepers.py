@@ -1,4 +1,4 @@
-"""Sarsa keepers for a batch of keepaway fields: the reference's tile coding and one weight table per keeper."""
+"""Sarsa keepers for a batch of keepaway fields: the reference's tile coding, a weight table per keeper."""
 
 from __future__ import annotations
 

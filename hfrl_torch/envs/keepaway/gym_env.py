@@ -21,12 +21,15 @@ class KeepawayGymEnv(gymnasium.Env):
     """One keepaway field (B = 1) with the Gymnasium API; options as for :class:`KeepawayEnv`.
 
     ``info`` carries ``keeper``, ``action_mask``, ``episode_cycles``, ``end_cause``,
-    ``episode_end_rewards`` and ``step_cycles``.
+    ``episode_end_rewards`` and ``step_cycles``. ``reset(seed=s)`` starts afresh, as a new
+    ``KeepawayGymEnv(seed=s)`` would: the simulator carries the players' body angles from one episode
+    to the next, so re-seeding its generator alone would not repeat the episode.
     """
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"], "render_fps": 10}
 
     def __init__(self, render_mode: str | None = None, seed: int = 0, **options: Any) -> None:
+        self._options = options
         self.env = KeepawayEnv(1, seed=seed, **options)
         cfg = self.env.config
         self.observation_space = spaces.Box(-np.inf, np.inf, shape=(cfg.num_state_vars,), dtype=np.float32)
@@ -50,7 +53,7 @@ class KeepawayGymEnv(gymnasium.Env):
         """Start a new episode; returns the first decision's state variables and info."""
         super().reset(seed=seed)
         if seed is not None:
-            self.env.set_seed(seed)
+            self.env = KeepawayEnv(1, seed=seed, **self._options)
         self._td = self.env.reset()
         return self._td[keys.OBSERVATION][0].cpu().numpy(), self._info(self._td)
 

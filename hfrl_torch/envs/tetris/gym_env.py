@@ -49,7 +49,7 @@ class TetrisGymEnv(gym.Env):
             keys.AFTERSTATE_FEATURES: spaces.Box(-np.inf, np.inf, (a, f), np.float32),
             keys.AFTERSTATE_TERMINAL: spaces.MultiBinary(a),
             keys.ACTION_MASK: spaces.MultiBinary(a),
-            keys.BOARD: spaces.MultiBinary((height, width)),
+            keys.BOARD: spaces.Box(0, 1, (height, width), np.int8),  # TorchRL wraps no 2-D MultiBinary
             keys.PIECE: spaces.Discrete(7),
         }
         if preview:

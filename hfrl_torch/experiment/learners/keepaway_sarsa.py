@@ -1,5 +1,5 @@
-"""Keepaway keepers that learn by SMDP Sarsa(lambda), from the environment and, with a trainer, from a person's
-feedback too: ``train.py domain=keepaway [fusion=<scheme>]`` (thesis Figure 5.4 and Chapter 5).
+"""Keepaway keepers that learn by SMDP Sarsa(lambda), from the environment and, with a trainer, from a
+person's feedback too: ``train.py domain=keepaway [fusion=<scheme>]`` (thesis Figure 5.4 and Chapter 5).
 
 ``agent.learners`` independent *learners* (teams of keepers: the seeds of the experiment) each play on
 ``agent.fields_per_learner`` fields of one batched ``KeepawayEnv`` (``sync="any"``: every field runs on
@@ -159,7 +159,8 @@ class SarsaKeepers(Learner):
     @property
     def description(self) -> str:
         a = self.cfg.agent
-        return f"Sarsa keepers {self.config.keepers}v{self.config.takers}, {a.learners} learners x {a.fields_per_learner} fields"
+        teams = f"{a.learners} learners x {a.fields_per_learner} fields"
+        return f"Sarsa keepers {self.config.keepers}v{self.config.takers}, {teams}"
 
     # ----------------------------------------------------------------- the loop
 
@@ -176,7 +177,8 @@ class SarsaKeepers(Learner):
             if self.taught:
                 logger.text(
                     "trainer",
-                    f"{self.who}; fusion={self.cfg.fusion.name}, credit={self.cfg.human.credit}, H^ per {self.cfg.human.model}",
+                    f"{self.who}; fusion={self.cfg.fusion.name}, credit={self.cfg.human.credit}, "
+                    f"H^ per {self.cfg.human.model}",
                 )
         if self.teaching is not None:
             wait_for_teacher(self.cfg, self.teaching)
@@ -484,13 +486,15 @@ class SarsaKeepers(Learner):
             window = "all its episodes"
         lines = [
             f"Done: after {final['hours']:.2f} simulated hours per learner ({a.learners} learners), "
-            f"episodes last {final['episode_s_mean']:.2f} s (95% CI {low:.2f}..{high:.2f}; {window}, exploring)"
+            f"episodes last {final['episode_s_mean']:.2f} s (95% CI {low:.2f}..{high:.2f}; {window}, "
+            "exploring)"
         ]
         if self.taught:
             who = TRAINER_LABELS.get(self.cfg.trainer.name, self.cfg.trainer.name)
             lines.append(
                 f"Feedback:         {final['feedback_events']:.0f} events of the {who} "
-                f"(fusion={self.cfg.fusion.name}, mean weight on H^ {final.get('fusion/weight_mean', 0.0):.2f})"
+                f"(fusion={self.cfg.fusion.name}, mean weight on H^ "
+                f"{final.get('fusion/weight_mean', 0.0):.2f})"
             )
             lines.append(f"Feedback log:     {self.log.path}")
         return lines

@@ -209,7 +209,7 @@ class CEMLearner(Learner):
         return [Point({"iteration": step, **metrics}, step)]
 
     def watch_game(self, game_seed: int, episode: int) -> dict[str, float]:
-        """The trainer watches the fused mean policy play one game; H^ learns from every event. Returns its totals.
+        """The trainer watches the fused mean policy play one game; H^ learns from every event; its totals.
 
         The game's last events, which arrive after its last placement, are learned too (they credit its last
         placements). With a person in the browser the game runs on the wall clock at the page's speed, every
@@ -333,7 +333,8 @@ class CEMLearner(Learner):
     def report(self, final: dict[str, Any]) -> list[str]:
         low, high = final["eval/mean_policy_lines_ci95_low"], final["eval/mean_policy_lines_ci95_high"]
         lines = [
-            f"Done: mean policy {final['eval/mean_policy_lines_mean']:.1f} lines per game (95% CI {low:.1f}..{high:.1f})"
+            f"Done: mean policy {final['eval/mean_policy_lines_mean']:.1f} lines per game "
+            f"(95% CI {low:.1f}..{high:.1f})"
         ]
         if self.taught:
             who = TRAINER_LABELS.get(self.cfg.trainer.name, self.cfg.trainer.name)

@@ -265,7 +265,7 @@ class TetrisGames(Learner):
         return {"state": state, "policy": self.policy(), "rules": self.rules.as_dict()}
 
     def widen(self, per_game: torch.Tensor, fill: float = 0) -> torch.Tensor:
-        """A saved per-game table [L, G_saved, ...] with room for this run's ``agent.games`` (a longer budget)."""
+        """A saved per-game table [L, G_saved, ...] with room for ``agent.games`` (a longer budget)."""
         missing = self.games - per_game.shape[1]
         if missing <= 0:
             return per_game.clone()
@@ -314,7 +314,8 @@ class TetrisGames(Learner):
     def report(self, final: dict[str, Any]) -> list[str]:
         low, high = final["eval/lines_per_game_ci95_low"], final["eval/lines_per_game_ci95_high"]
         lines = [
-            f"Done: game {final['game']} of {self.learners} learners: {final['eval/lines_per_game_mean']:.1f} "
+            f"Done: game {final['game']} of {self.learners} learners: "
+            f"{final['eval/lines_per_game_mean']:.1f} "
             f"lines per game (95% CI {low:.1f}..{high:.1f})"
             + (
                 f", from {final['feedback_events']:.0f} events of the {self.trainer_label}"
@@ -326,7 +327,8 @@ class TetrisGames(Learner):
             g_low, g_high = final["eval/greedy_lines_ci95_low"], final["eval/greedy_lines_ci95_high"]
             lines.append(
                 f"Greedy policies:  {final['eval/greedy_lines_mean']:.1f} lines per game over "
-                f"{self.cfg.agent.eval_games} fresh games each (95% CI over learners {g_low:.1f}..{g_high:.1f})"
+                f"{self.cfg.agent.eval_games} fresh games each (95% CI over learners "
+                f"{g_low:.1f}..{g_high:.1f})"
             )
         if self.log is not None:
             lines.append(f"Feedback log:     {self.log.path}")

@@ -111,7 +111,10 @@ class PolicyGradientLearner(TetrisGames):
 
     def load_learner_state(self, state: dict[str, Any]) -> None:
         self.pg.load_learner_state(state)
-        self.used_weight, self.match_rate = self.widen(state["used_weight"]), self.widen(state["match_rate"], math.nan)
+        self.used_weight, self.match_rate = (
+            self.widen(state["used_weight"]),
+            self.widen(state["match_rate"], math.nan),
+        )
 
     def policy(self) -> dict[str, Any]:
         # evaluate.py plays theta greedily: the most probable placement of the softmax policy

@@ -145,6 +145,7 @@ function onMessage(ev) {
   else if (m.type === "keepaway") { drawKeepaway(m); $("status").textContent = m.text || ""; }
   else if (m.type === "curve") { curve = m.curve; drawCurve(); }
   else if (m.type === "status") $("status").textContent = m.text;
+  else if (m.type === "role") $("status").textContent = m.text;
   else if (m.type === "error") console.warn("server rejected a message:", m.message);
 }
 

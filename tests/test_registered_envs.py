@@ -1,0 +1,69 @@
+"""Every registered Gymnasium id passes Gymnasium's own checker and, through TorchRL's Gym wrapper, TorchRL's
+spec check; ``reset(seed=...)`` repeats an episode exactly."""
+
+from __future__ import annotations
+
+import warnings
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+from torchrl.envs import GymWrapper
+from torchrl.envs.utils import check_env_specs
+
+import hfrl_torch  # noqa: F401  (registers the ids)
+from hfrl_torch.envs.registration import ENV_IDS
+
+SMALL = {"hfrl_torch/Tetris-v0": {"width": 8, "height": 8}, "hfrl_torch/Keepaway-v0": {}}
+
+
+def test_every_registered_id_has_small_options_here():
+    assert set(SMALL) == set(ENV_IDS)
+
+
+@pytest.mark.parametrize("env_id", sorted(ENV_IDS))
+def test_gymnasium_check_env(env_id):
+    env = gym.make(env_id, **SMALL[env_id])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # advice only (an unbounded Box, float32 precision)
+        check_env(env.unwrapped)
+
+
+@pytest.mark.parametrize("env_id", sorted(ENV_IDS))
+def test_torchrl_check_env_specs(env_id):
+    check_env_specs(GymWrapper(gym.make(env_id, **SMALL[env_id])), seed=0)
+
+
+def _flat(obs) -> np.ndarray:
+    if isinstance(obs, dict):
+        return np.concatenate([np.ravel(v).astype(np.float64) for _, v in sorted(obs.items())])
+    return np.asarray(obs, dtype=np.float64)
+
+
+def _episode(env: gym.Env, seed: int, steps: int = 15) -> list[np.ndarray]:
+    """Observations and rewards of ``steps`` steps after ``reset(seed=seed)``, actions drawn from the mask."""
+    obs, info = env.reset(seed=seed)
+    rng = np.random.default_rng(0)
+    seen = [_flat(obs)]
+    for _ in range(steps):
+        allowed = np.flatnonzero(info["action_mask"])
+        obs, reward, terminated, truncated, info = env.step(int(rng.choice(allowed)))
+        seen.append(np.append(_flat(obs), reward))
+        if terminated or truncated:
+            break
+    return seen
+
+
+@pytest.mark.parametrize("env_id", sorted(ENV_IDS))
+def test_a_seeded_reset_repeats_the_episode_after_play(env_id):
+    env = gym.make(env_id, **SMALL[env_id]).unwrapped
+    first = _episode(env, 123)
+    again = _episode(env, 123)  # after the first episode's play (body angles, boards)
+    fresh = _episode(gym.make(env_id, **SMALL[env_id]).unwrapped, 123)
+    other = _episode(env, 124)
+    assert len(first) == len(again) == len(fresh) > 1
+    assert all(
+        np.array_equal(a, b) and np.array_equal(a, c) for a, b, c in zip(first, again, fresh, strict=True)
+    )
+    assert not np.array_equal(first[0], other[0])
