@@ -208,3 +208,48 @@ def test_a_sweep_with_a_bad_job_stops_before_anything_is_written(tmp_path):
     assert len(err) == 1 and err[0].startswith("error: job 1 (") and "agent.population=1 is invalid" in err[0]
     out = run("train.py", "-m", "fusion=linear,bogus", f"hydra.sweep.dir={sweep}")
     assert out.returncode == 2 and "unknown fusion 'bogus'" in out.stderr and not sweep.exists()
+
+
+def test_a_new_run_never_writes_into_an_existing_runs_directory(trained, tmp_path):
+    before = (trained / "config.yaml").read_text()
+    out = run("train.py", *TINY, "agent.iterations=1", f"hydra.run.dir={trained}")
+    assert out.returncode == 2 and f"{trained} already holds a run; resume it with resume={trained}" in out.stderr
+    assert (trained / "config.yaml").read_text() == before
+    sweep = tmp_path / "sweep"
+    assert run("train.py", "-m", *TINY, "agent.iterations=1", "seed=1,2", f"hydra.sweep.dir={sweep}").returncode == 0
+    lines = (sweep / "0" / "metrics.jsonl").read_text()
+    again = run("train.py", "-m", *TINY, "agent.iterations=1", "seed=1,2", f"hydra.sweep.dir={sweep}")
+    assert again.returncode == 2 and "job 0 (" in again.stderr and "already holds a run" in again.stderr
+    assert (sweep / "0" / "metrics.jsonl").read_text() == lines  # not appended to
+
+
+def test_two_runs_started_in_the_same_second_get_their_own_directories(tmp_path):
+    from hfrl_torch.experiment.resolvers import run_dir
+
+    first = tmp_path / "10-00-00_tetris_cem"
+    assert run_dir(None, str(first)) == str(first)
+    first.mkdir()
+    assert run_dir(None, str(first)) == f"{first}_2"
+    (tmp_path / "10-00-00_tetris_cem_2").mkdir()
+    assert run_dir(None, str(first)) == f"{first}_3"
+    assert run_dir(str(first), "ignored").startswith(f"{first}/resume-logs/")
+
+
+def test_a_sweep_job_that_fails_is_reported_and_the_sweep_goes_on(tmp_path):
+    import socket
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        args = ["-m", "trainer=interactive", "trainer.wait_for_page_s=0", f"trainer.port={port},0"]
+        out = run("train.py", *args, *TINY, "agent.iterations=1", f"hydra.sweep.dir={tmp_path}")
+    assert out.returncode == 1
+    assert f"error: cannot serve the browser trainer on 127.0.0.1:{port}" in out.stderr
+    assert (tmp_path / "1" / "checkpoints" / "last.pt").exists()  # the job after the failed one ran
+
+
+def test_an_initial_trust_outside_zero_one_is_refused(tmp_path):
+    out = run("train.py", "fusion=linear", "fusion.initial_trust=5", f"hydra.run.dir={tmp_path / 'r'}")
+    assert out.returncode == 2 and "fusion.initial_trust=5 is invalid" in out.stderr
+    assert not (tmp_path / "r").exists()

@@ -18,7 +18,9 @@ from pathlib import Path
 from hydra import compose, initialize_config_dir
 from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
 from hydra._internal.utils import get_args_parser
+from hydra.core.hydra_config import HydraConfig
 from hydra.core.override_parser.overrides_parser import OverridesParser
+from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from hfrl_torch.common.checkpoint import load_checkpoint
@@ -66,6 +68,28 @@ def job_overrides(overrides: list[str], config_name: str, multirun: bool) -> tup
     return BasicSweeper.split_arguments(parser.parse_overrides(declared + overrides), None)[0], True
 
 
+def job_dir(config_name: str, overrides: list[str], index: int | None) -> Path | None:
+    """The directory a job will write to (a single run's ``hydra.run.dir``, a sweep job's
+    ``hydra.sweep.dir/<subdir>``); None for ``evaluate.py``, which writes none."""
+    hydra = _compose(config_name, overrides, hydra=True).hydra
+    if hydra.get("output_subdir") is None:
+        return None
+    if index is None:
+        return Path(str(hydra.run.dir))
+    subdir = str(OmegaConf.to_container(hydra.sweep, resolve=False).get("subdir", ""))
+    return Path(str(hydra.sweep.dir)) / subdir.replace("${hydra.job.num}", str(index))
+
+
+def check_fresh(path: Path | None, resuming: bool) -> None:
+    """Refuse to start a new run in a directory that already holds one (resume it, or choose another)."""
+    if path is None or resuming or not (path / "config.yaml").exists():
+        return
+    raise UserError(
+        f"{path} already holds a run; resume it with resume={path}, or choose another directory "
+        "(hydra.run.dir, or hydra.sweep.dir for a sweep)"
+    )
+
+
 def _compose(config_name: str, overrides: list[str], hydra: bool = False) -> DictConfig:
     task = overrides if hydra else [o for o in overrides if not o.lstrip("+~").startswith("hydra")]
     with initialize_config_dir(str(CONF_DIR), version_base=None):
@@ -85,11 +109,13 @@ def precheck(argv: list[str], config_name: str, validate: Callable[[DictConfig],
         jobs, complete = job_overrides(args.overrides, config_name, bool(args.multirun))
         for i, job in enumerate(jobs):
             cfg = _compose(config_name, job)
-            if cfg.get("resume"):
+            resuming = bool(cfg.get("resume"))
+            if resuming:
                 checkpoint = load_checkpoint(cfg.resume)
                 cfg = resume_config(cfg, Path(cfg.resume), checkpoint, job)
             try:
                 validate(cfg)
+                check_fresh(job_dir(config_name, job, i if args.multirun else None), resuming)
             except (UserError, ValueError) as exc:
                 where = f"job {i} ({' '.join(job)}): " if len(jobs) > 1 else ""
                 fail(where + str(exc).splitlines()[0])
@@ -112,19 +138,32 @@ def fail(message: str) -> None:
     sys.exit(2)
 
 
+class JobFailed(RuntimeError):
+    """A sweep job stopped on bad input: reported as its one line, and the sweep goes on."""
+
+
 def guarded(fn: Callable[..., object]) -> Callable[..., object]:
-    """Run ``fn`` turning a :class:`UserError` into one ``error:`` line and exit status 2."""
+    """Run ``fn`` turning a :class:`UserError` into one ``error:`` line: exit status 2 for a single run; in a
+    sweep, a failed job (Hydra reports it and runs the next jobs, and the sweep ends with status 1)."""
 
     @functools.wraps(fn)
     def wrapper(*args: object, **kwargs: object) -> object:
         try:
             return fn(*args, **kwargs)
         except UserError as exc:
-            fail(str(exc))
+            message = str(exc)
         except ValueError as exc:  # invalid values caught by constructors (rules, feature sets)
             if "\n" in str(exc) or not str(exc):
                 raise
-            fail(str(exc))
+            message = str(exc)
+        _fail_job(message)
         return None
 
     return wrapper
+
+
+def _fail_job(message: str) -> None:
+    if HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN:
+        print(f"error: {message}", file=sys.stderr)
+        raise JobFailed(message)
+    fail(message)

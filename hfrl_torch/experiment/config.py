@@ -319,7 +319,7 @@ def check_fusion(cfg: DictConfig) -> None:
     else:
         weight = OmegaConf.select(cfg, "fusion.weight")
         if weight == "trust":
-            require_float(cfg, "fusion.initial_trust", 0.0)
+            require_float(cfg, "fusion.initial_trust", 0.0, 1.0)  # a rate of agreement
         elif isinstance(weight, str):
             raise ConfigError(f"fusion.weight={weight!r} is invalid; allowed: trust, or a number >= 0")
         else:

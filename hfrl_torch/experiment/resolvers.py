@@ -7,13 +7,15 @@ package). ``python train.py --cfg job`` shows them as written; ``--resolve`` sho
   when the fusion scheme needs a trainer, none otherwise.
 - ``${decision_period:<trainer>}``: keepaway holders decide every cycle (100 ms, the reference) without
   a trainer and every 5 cycles (500 ms, the thesis's human-feedback setting) when one watches.
-- ``${run_dir:<resume>,<new>}``: where Hydra writes a run's files: a new run's own directory, or, when
-  resuming, ``<resume>/resume-logs/<date>_<time>`` inside the resumed run.
+- ``${run_dir:<resume>,<new>}``: where Hydra writes a run's files: a new run's own directory (``<new>``, or
+  ``<new>_2``, ``<new>_3``... when a run started in the same second has it), or, when resuming,
+  ``<resume>/resume-logs/<date>_<time>`` inside the resumed run.
 """
 
 from __future__ import annotations
 
 import time
+from pathlib import Path
 
 from omegaconf import OmegaConf
 
@@ -31,10 +33,15 @@ def decision_period(trainer: str) -> int:
 
 
 def run_dir(resume: str | None, new: str) -> str:
-    """``new`` for a new run; ``<resume>/resume-logs/<now>`` for a resumed one."""
-    if resume in (None, "", "null"):
-        return new
-    return f"{resume}/resume-logs/{time.strftime('%Y-%m-%d_%H-%M-%S')}"
+    """``new`` (or the first of ``new_2``, ``new_3``... that no run holds) for a new run;
+    ``<resume>/resume-logs/<now>`` for a resumed one."""
+    if resume not in (None, "", "null"):
+        return f"{resume}/resume-logs/{time.strftime('%Y-%m-%d_%H-%M-%S')}"
+    name, k = new, 1
+    while Path(name).exists():
+        k += 1
+        name = f"{new}_{k}"
+    return name
 
 
 def register() -> None:

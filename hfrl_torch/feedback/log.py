@@ -453,6 +453,18 @@ class FeedbackLog:
                 waiting += len(pending)
         return waiting
 
+    def resume(self, last_seq: Mapping[str, int], regenerated: bool) -> list[FeedbackEvent]:
+        """Continue a checkpoint's feedback exactly once: every session of the log is taken as seen up to
+        ``last_seq`` (-1 for one the checkpoint never saw). With ``regenerated`` (a simulated trainer or a
+        replay, restored to the checkpoint's state, gives the same events again) the log :meth:`rewind` s;
+        otherwise (a person) it returns the logged events the learner has not seen, to be learned."""
+        seen = {session: -1 for session in self.last_seq}
+        seen.update({str(k): int(v) for k, v in last_seq.items()})
+        if regenerated:
+            self.rewind(seen)
+            return []
+        return self.logged_after(seen)
+
     def logged_after(self, last_seq: Mapping[str, int]) -> list[FeedbackEvent]:
         """The logged events of the sessions in ``last_seq`` after ``last_seq[session]``, in the order
         written: what a resumed learner has not seen (a person's presses, which cannot be given again)."""

@@ -20,8 +20,9 @@ fusion, in four parts:
    weight decays by its factor; a fixed weight stays.
 
 Every random draw of iteration t (CE, games, trainer, control-sharing coins) is seeded from (seed, t) or
-restored from the checkpoint, so a resumed run continues as if never stopped; feedback events are appended
-to ``feedback.jsonl`` as they are given, so a crash loses none of them.
+restored from the checkpoint, so a resumed run continues as if never stopped. Feedback events are appended
+to ``feedback.jsonl`` as they are given, so a crash loses none of them, and each checkpoint names the last
+event its learner was given: a resumed run neither logs an event twice nor loses one (``FeedbackLog.resume``).
 """
 
 from __future__ import annotations
@@ -303,6 +304,7 @@ class CEMLearner(Learner):
             "trainer": self.trainer.state_dict(),
             "channel": self.channel.state_dict(),
             "clock": self.clock,
+            "log_seq": self.log.last_seq,  # the last event of each session the learner has been given
         }
         policy.update(
             kind="fused",
@@ -325,6 +327,10 @@ class CEMLearner(Learner):
             self.trainer.load_state_dict(state["trainer"])
             self.channel.load_state_dict(state["channel"])
             self.clock = float(state["clock"])
+            # exactly once: a simulated trainer or a replay gives the events after the checkpoint again (not
+            # logged twice); a person's logged presses the learner never saw are learned now
+            person = self.teaching is not None
+            self.channel.put_events([self.log.resume(state["log_seq"], regenerated=not person)])
         except (KeyError, RuntimeError, TypeError, ValueError) as e:
             raise CheckpointError(f"checkpoint of {self.run_dir} is not this CE run's ({e!r})") from None
 

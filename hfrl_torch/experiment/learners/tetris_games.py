@@ -261,6 +261,7 @@ class TetrisGames(Learner):
                 trainer=self.trainer.state_dict(),
                 channel=self.channel.state_dict(),
                 human=self.human.learner_state(),
+                log_seq=self.log.last_seq,  # the last event of each session the learner has been given
             )
         return {"state": state, "policy": self.policy(), "rules": self.rules.as_dict()}
 
@@ -283,6 +284,7 @@ class TetrisGames(Learner):
             self.trainer.load_state_dict(state["trainer"])
             self.channel.load_state_dict(state["channel"])
             self.human.load_learner_state(state["human"])
+            self.log.resume(state["log_seq"], regenerated=True)  # the events after it come again, once
         return td
 
     def linear_policy(self, features: str, weights: torch.Tensor, note: str) -> dict[str, Any]:
