@@ -213,10 +213,16 @@ def test_a_sweep_with_a_bad_job_stops_before_anything_is_written(tmp_path):
 def test_a_new_run_never_writes_into_an_existing_runs_directory(trained, tmp_path):
     before = (trained / "config.yaml").read_text()
     out = run("train.py", *TINY, "agent.iterations=1", f"hydra.run.dir={trained}")
-    assert out.returncode == 2 and f"{trained} already holds a run; resume it with resume={trained}" in out.stderr
+    assert (
+        out.returncode == 2
+        and f"{trained} already holds a run; resume it with resume={trained}" in out.stderr
+    )
     assert (trained / "config.yaml").read_text() == before
     sweep = tmp_path / "sweep"
-    assert run("train.py", "-m", *TINY, "agent.iterations=1", "seed=1,2", f"hydra.sweep.dir={sweep}").returncode == 0
+    assert (
+        run("train.py", "-m", *TINY, "agent.iterations=1", "seed=1,2", f"hydra.sweep.dir={sweep}").returncode
+        == 0
+    )
     lines = (sweep / "0" / "metrics.jsonl").read_text()
     again = run("train.py", "-m", *TINY, "agent.iterations=1", "seed=1,2", f"hydra.sweep.dir={sweep}")
     assert again.returncode == 2 and "job 0 (" in again.stderr and "already holds a run" in again.stderr

@@ -42,11 +42,13 @@ class FeedbackChannel:
         self.time = torch.full((boards, capacity), torch.inf, dtype=torch.float64)
         self.value = torch.zeros(boards, capacity, dtype=torch.float64)
         self.source = torch.zeros(boards, capacity, dtype=torch.int64)
+        self._waiting = 0  # events in the queues (a delivery with none due is the common case)
+        self._none = self._delivery(torch.zeros(boards, slots, dtype=torch.bool), None)
 
     @property
     def pending(self) -> int:
         """Events waiting on every board."""
-        return int(torch.isfinite(self.time).sum())
+        return self._waiting
 
     def put(self, values: Tensor, times: Tensor, source: str | Tensor) -> None:
         """Queue one event per board where ``values`` [B] is nonzero, given at ``times`` [B] seconds.
@@ -72,6 +74,7 @@ class FeedbackChannel:
         self.time[rows, free[rows]] = times[rows]
         self.value[rows, free[rows]] = values[rows]
         self.source[rows, free[rows]] = codes[rows]
+        self._waiting += int(rows.numel())
 
     def _grow(self) -> None:
         """Double every board's queue (a clock that stalled while events kept coming)."""
@@ -96,31 +99,46 @@ class FeedbackChannel:
     def deliver(self, now: Tensor | float) -> TensorDict:
         """The events due by ``now`` (seconds, one clock per board [B] or one for all), oldest first, at most
         K per board, as a ``TensorDict`` [B] of ``keys.FEEDBACK``, ``FEEDBACK_TIME``, ``FEEDBACK_MASK`` and
-        ``FEEDBACK_SOURCE``, each [B, K]; they leave the queue."""
+        ``FEEDBACK_SOURCE``, each [B, K]; they leave the queue. A delivery without an event is one shared
+        tensordict: read it, do not write into it."""
+        if not self._waiting:
+            return self._none
         clock = torch.as_tensor(now, dtype=torch.float64).reshape(-1).expand(self.boards)
         due = torch.isfinite(self.time) & (self.time <= clock.unsqueeze(1))
+        if not bool(due.any()):
+            return self._none
         order = torch.where(due, self.time, torch.inf).argsort(dim=1, stable=True)[:, : self.slots]
         taken = due.gather(1, order)
-        out = TensorDict(
+        out = self._delivery(taken, order)
+        rows, cols = taken.nonzero(as_tuple=True)
+        slot = order[rows, cols]
+        self.time[rows, slot] = torch.inf
+        self.value[rows, slot] = 0.0
+        self.source[rows, slot] = 0
+        self._waiting -= int(rows.numel())
+        return out
+
+    def _delivery(self, taken: Tensor, order: Tensor | None) -> TensorDict:
+        if order is None:  # no event: empty slots
+            value, time = torch.zeros(taken.shape, dtype=torch.float64), torch.full(taken.shape, torch.nan)
+            source = torch.zeros(taken.shape, dtype=torch.int64)
+        else:
+            value = torch.where(taken, self.value.gather(1, order), 0.0)
+            time = torch.where(taken, self.time.gather(1, order), torch.nan)
+            source = torch.where(taken, self.source.gather(1, order), 0)
+        return TensorDict(
             {
-                keys.FEEDBACK: torch.where(taken, self.value.gather(1, order), 0.0),
-                keys.FEEDBACK_TIME: torch.where(taken, self.time.gather(1, order), torch.nan),
+                keys.FEEDBACK: value,
+                keys.FEEDBACK_TIME: time.to(torch.float64),
                 keys.FEEDBACK_MASK: taken,
-                keys.FEEDBACK_SOURCE: torch.where(taken, self.source.gather(1, order), 0),
+                keys.FEEDBACK_SOURCE: source,
             },
             batch_size=[self.boards],
         )
-        if bool(taken.any()):
-            rows, cols = taken.nonzero(as_tuple=True)
-            slot = order[rows, cols]
-            self.time[rows, slot] = torch.inf
-            self.value[rows, slot] = 0.0
-            self.source[rows, slot] = 0
-        return out
 
     def empty(self) -> TensorDict:
-        """A delivery with no event (what a decision with nothing due sees)."""
-        return self.deliver(-torch.inf)
+        """A delivery with no event (what a decision with nothing due sees); a new one, to write into."""
+        return self._none.clone()
 
     def state_dict(self) -> dict[str, Any]:
         """The waiting events (so a resumed run delivers them as the uninterrupted one would)."""
@@ -144,3 +162,4 @@ class FeedbackChannel:
             )
         self.time, self.value, self.source = time.clone(), value.clone(), source.clone()
         self.capacity = shape[1]
+        self._waiting = int(torch.isfinite(self.time).sum())

@@ -65,7 +65,7 @@ def test_state_round_trips_the_waiting_events():
     fresh = FeedbackChannel(2)
     fresh.load_state_dict(ch.state_dict())
     a, b = ch.deliver(torch.tensor([6.0, 6.0])), fresh.deliver(torch.tensor([6.0, 6.0]))
-    assert all(torch.equal(a[k].nan_to_num(), b[k].nan_to_num()) for k in a)
+    assert all(torch.equal(a[k].nan_to_num(), b[k].nan_to_num()) for k in a.keys())  # noqa: SIM118
     with pytest.raises(CheckpointError, match="3 boards"):
         FeedbackChannel(3).load_state_dict(ch.state_dict())
     with pytest.raises(CheckpointError, match="feedback channel"):

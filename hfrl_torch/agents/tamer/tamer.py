@@ -101,13 +101,13 @@ class TamerAgent:
     def learn(self, feedback: TensorDictBase) -> torch.Tensor:
         """Learn from the feedback entries of ``feedback`` (``keys.FEEDBACK``, ``FEEDBACK_TIME``,
         ``FEEDBACK_MASK``, each [L, K]; Algorithm 2), slot by slot, oldest first; returns how many [L]."""
-        value = feedback.get(keys.FEEDBACK).to(torch.float64)
         given = feedback.get(keys.FEEDBACK_MASK).to(torch.bool)
+        if not bool(given.any()):
+            return torch.zeros(self.learners, dtype=torch.int64)
+        value = feedback.get(keys.FEEDBACK).to(torch.float64)
         when = torch.where(given, feedback.get(keys.FEEDBACK_TIME).to(torch.float64), 0.0)
         count = given.sum(-1).cpu().to(torch.int64)
-        slots = int(given.any(0).nonzero().max()) + 1 if bool(given.any()) else 0
-        if slots == 0:
-            return count
+        slots = int(given.any(0).nonzero().max()) + 1
         ends = torch.cat([self.starts[:, 1:], torch.full((self.learners, 1), torch.inf)], dim=1)
         ends = torch.maximum(ends, self.starts)
         for k in range(slots):
