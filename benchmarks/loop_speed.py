@@ -1,10 +1,12 @@
-"""Wall time of every training loop, side by side with another checkout of this project, in one run.
+"""Time of every training loop, side by side with another checkout of this project, in one run.
 
 Each loop is one ``train.py`` command with a small budget, run in a fresh process that imports the checkout's
 modules first and then times the command itself (config, set-up, the loop, the last checkpoint), so that
-Python's start-up is left out. The two checkouts' runs alternate (A, B, A, B, ...) so that a machine whose
-speed drifts slows both alike, and the median of the repeats is reported with the ratio B / A. Both run with
-one thread and the same Python (``sys.executable``)::
+Python's start-up is left out. The time is the process's CPU time (``time.process_time``: one thread, so the
+work done), which other jobs on the machine disturb far less than wall time; the wall time is kept too.
+The two checkouts' runs alternate (A, B, A, B, ...) so that a machine whose speed drifts slows both alike,
+and the median of the repeats is reported with the ratio B / A. Both run with one thread
+and the same Python (``sys.executable``)::
 
     git worktree add /tmp/before <commit>
     python benchmarks/loop_speed.py --reference /tmp/before --repeats 3
@@ -23,11 +25,13 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 LOOPS = {
     "cem": ["agent.iterations=40"],
-    "cem+trainer": ["fusion=linear", "trainer=oracle", "agent.iterations=15"],
-    "tamer": ["agent=tamer", "trainer=oracle", "agent.games=4"],
+    # annealed and fixed weights: both checkouts play the same games (the trust factor's match count
+    # changed its definition, so its runs differ and their times would not compare)
+    "cem+trainer": ["fusion=annealed", "trainer=oracle", "agent.iterations=15"],
+    "tamer": ["agent=tamer", "trainer=oracle", "agent.games=8"],
     "qlearning": ["agent=qlearning", "agent.games=200", "agent.eval_games=0"],
     "pg": ["agent=pg", "agent.games=200", "agent.eval_games=0"],
-    "pg+trainer": ["agent=pg", "fusion=linear", "trainer=oracle", "agent.games=150", "agent.eval_games=0"],
+    "pg+trainer": ["agent=pg", "fusion=annealed", "trainer=oracle", "agent.games=150", "agent.eval_games=0"],
     "keepaway": ["domain=keepaway", "agent=sarsa", "human=tile_coded", "agent.hours=0.06"],
     "keepaway+trainer": [
         "domain=keepaway",
@@ -46,18 +50,19 @@ checkout = sys.argv[1]
 sys.path.insert(0, checkout)
 import hfrl_torch.experiment.train
 sys.argv = [checkout + "/train.py", *sys.argv[2:]]
-t0 = time.perf_counter()
+t0, c0 = time.perf_counter(), time.process_time()
 try:
     runpy.run_path(checkout + "/train.py", run_name="__main__")
 except SystemExit as exit:
     if exit.code:
         raise
-print("SECONDS", time.perf_counter() - t0, file=sys.stderr)
+print("SECONDS", time.process_time() - c0, time.perf_counter() - t0, file=sys.stderr)
 """
 
 
-def run_once(checkout: Path, overrides: list[str], out: Path) -> float:
-    """Seconds of one ``train.py`` command of ``checkout``, start-up left out (a failed run raises)."""
+def run_once(checkout: Path, overrides: list[str], out: Path) -> tuple[float, float]:
+    """CPU and wall seconds of one ``train.py`` command of ``checkout``, start-up left out (a failed run
+    raises)."""
     done = subprocess.run(
         [sys.executable, "-c", DRIVER, str(checkout), *overrides, *COMMON, f"hydra.run.dir={out}"],
         cwd=checkout,
@@ -67,7 +72,8 @@ def run_once(checkout: Path, overrides: list[str], out: Path) -> float:
     marks = [line for line in done.stderr.splitlines() if line.startswith("SECONDS ")]
     if done.returncode != 0 or not marks:
         raise RuntimeError(f"{checkout}: train.py {' '.join(overrides)} failed:\n{done.stderr[-2000:]}")
-    return float(marks[-1].split()[1])
+    cpu, wall = marks[-1].split()[1:]
+    return float(cpu), float(wall)
 
 
 def main() -> None:
@@ -79,14 +85,22 @@ def main() -> None:
     results = {}
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.loops:
-            times: dict[str, list[float]] = {"reference": [], "this": []}
+            cpu: dict[str, list[float]] = {"reference": [], "this": []}
+            wall: dict[str, list[float]] = {"reference": [], "this": []}
             for r in range(args.repeats + 1):  # the first round warms both (numba caches), not counted
                 for label, checkout in (("reference", args.reference), ("this", ROOT)):
-                    seconds = run_once(checkout, LOOPS[name], Path(tmp) / f"{name}-{label}-{r}")
+                    c, w = run_once(checkout, LOOPS[name], Path(tmp) / f"{name}-{label}-{r}")
                     if r > 0:
-                        times[label].append(seconds)
-            a, b = statistics.median(times["reference"]), statistics.median(times["this"])
-            results[name] = {"reference_s": a, "this_s": b, "ratio": b / a, "runs": times}
+                        cpu[label].append(c)
+                        wall[label].append(w)
+            a, b = statistics.median(cpu["reference"]), statistics.median(cpu["this"])
+            results[name] = {
+                "reference_cpu_s": a,
+                "this_cpu_s": b,
+                "ratio": b / a,
+                "cpu_s": cpu,
+                "wall_s": wall,
+            }
             print(json.dumps({name: results[name]}), flush=True)
     print(json.dumps({"loops": results}))
 
