@@ -58,7 +58,39 @@ def test_defaults_are_valid():
         ),
         (
             "fusion=linear trainer=oracle fusion.weight=much",
-            "fusion.weight='much' is invalid; allowed: trust, or a number",
+            "fusion.weight='much' is invalid; allowed: trust, adaptive, bandit, search, or a number",
+        ),
+        (
+            "fusion=linear trainer=oracle fusion.weight=adaptive fusion.adaptive.arms=[1.0]",
+            "fusion.adaptive.arms=[1.0] is invalid; allowed: a list of two or more different weights >= 0",
+        ),
+        (
+            "fusion=linear trainer=oracle fusion.weight=bandit fusion.adaptive.arms=[0,-1]",
+            "fusion.adaptive.arms=[0, -1] is invalid",
+        ),
+        (
+            "fusion=linear trainer=oracle fusion.weight=adaptive fusion.adaptive.discount=0",
+            "fusion.adaptive.discount=0 is invalid: must be a finite number in 1e-06..1.0",
+        ),
+        (
+            "agent=pg fusion=linear trainer=oracle fusion.weight=search",
+            "fusion.weight=search with agent=pg fusion=linear is invalid: CE searches the weight",
+        ),
+        (
+            "fusion=reward_shaping trainer=oracle fusion.weight=search",
+            "fusion.weight=search with agent=cem fusion=reward_shaping is invalid",
+        ),
+        (
+            "fusion=linear trainer=oracle trainer.leave_after=-5",
+            "trainer.leave_after=-5 is invalid: must be a finite number >= 0.0",
+        ),
+        (
+            "fusion=linear trainer=oracle trainer.leave_unit=hours",
+            "trainer.leave_unit='hours' is invalid; allowed: episodes, minutes",
+        ),
+        (
+            "domain=keepaway fusion=linear trainer.leave_unit=days",
+            "trainer.leave_unit='days' is invalid; allowed: episodes, minutes",
         ),
         ("fusion=annealed trainer=oracle fusion.factor=1.5", "fusion.factor=1.5 is invalid"),
         (
@@ -179,6 +211,25 @@ def test_tamer_and_trainer_bad_values(overrides, message):
     with pytest.raises(ConfigError) as info:
         validate_train(cfg)
     assert message in str(info.value)
+
+
+def test_adaptive_weight_is_each_learners_own_estimator():
+    from hfrl_torch.experiment.factories import make_weight_schedule, weight_estimator
+    from hfrl_torch.fusion.bandit import BanditWeight
+    from hfrl_torch.fusion.schedules import SearchedWeight
+
+    for overrides, kind, cls in (
+        (["fusion=linear"], "search", SearchedWeight),  # CE selects the weight with its own search
+        (["fusion=reward_shaping"], "bandit", BanditWeight),  # a shaped fitness would select a large weight
+        (["agent=pg", "fusion=linear"], "bandit", BanditWeight),
+        (["domain=keepaway", "fusion=exponential"], "bandit", BanditWeight),
+        (["fusion=linear", "fusion.weight=bandit"], "bandit", BanditWeight),
+    ):
+        weight = [] if any(o.startswith("fusion.weight") for o in overrides) else ["fusion.weight=adaptive"]
+        cfg = _cfg("train", *overrides, *weight)
+        validate_train(cfg)
+        assert weight_estimator(cfg) == kind
+        assert isinstance(make_weight_schedule(cfg, 3), cls)
 
 
 def test_trainer_factory_builds_the_simulated_trainers():

@@ -7,8 +7,15 @@ the reference group (the first, or ``baseline=``), the difference with a permuta
 sign flips over seeds when both groups have the same seeds (paired), random relabelling otherwise. Runs
 without metrics (crashed, or killed before their first iteration) are listed and left out.
 
-Writes ``summary.csv``, ``summary.md`` and ``curves.png`` into ``out`` (default: the first directory), and
-the plot to TensorBoard as an image.
+With a trainer, each point of a learner's curve also carries the human effort behind it, as the field
+reports it (Knox & Stone's TAMER papers; Griffith et al. 2013): the feedback events given so far
+(``feedback_events``), the trainer's minutes of watching so far (``trainer_minutes``) and the weight on H^
+the learner played at (``weight``). The report then adds an effort table (events, minutes, the weight at
+the start and the end), and ``effort.png`` draws performance against feedback events and the weight over
+the curve's own axis.
+
+Writes ``summary.csv``, ``summary.md``, ``curves.png`` (and ``effort.png``) into ``out`` (default: the first
+directory), and the plots to TensorBoard as images.
 """
 
 from __future__ import annotations
@@ -32,6 +39,9 @@ CURVES = (
     ("episode", "eval/episode_seconds_mean"),  # keepaway learners
 )
 IGNORED = {"seed", "resume", "hydra", "logger", "threads", "device"}
+EFFORT = ("feedback_events", "trainer_minutes", "weight")  # per point, with a trainer
+# CE and CE + feedback log one row per iteration: (their metric, the effort key it adds up to)
+CE_EFFORT = (("feedback/given", "feedback_events"), ("feedback/trainer_minutes", "trainer_minutes"))
 
 
 @dataclass
@@ -108,8 +118,44 @@ def find_runs(dirs: list[Path]) -> tuple[list[Run], list[Path]]:
             if not rows:
                 broken.append(run_dir)
                 continue
+            _add_iteration_effort(rows)
             runs.extend(_learners(Run(run_dir, config, rows)))
     return runs, broken
+
+
+def _add_iteration_effort(rows: list[dict]) -> None:
+    """CE + feedback's rows (one per iteration) get the effort so far: events, trainer minutes, weight."""
+    if not rows or "feedback/given" not in rows[-1]:
+        return
+    totals = dict.fromkeys(EFFORT, 0.0)
+    for row in rows:
+        for metric, key in CE_EFFORT:
+            totals[key] += float(row.get(metric, 0.0))
+            row[key] = totals[key]
+        if "fusion/weight" in row:
+            row["weight"] = float(row["fusion/weight"])
+
+
+def _keepaway_effort(state: dict, field: int, block: int, blocks: int) -> list[dict[str, float]]:
+    """Per block of a taught keepaway learner's episodes: events and trainer minutes so far, mean weight."""
+    human = state.get("human")
+    effort = human.get("effort") if isinstance(human, dict) else None
+    if not isinstance(effort, torch.Tensor) or effort.ndim != 2 or effort.shape[1] < 5:
+        return [{} for _ in range(blocks)]
+    mine = effort[effort[:, 0] == field]
+    mine = mine[mine[:, 1].argsort()][: blocks * block]
+    if mine.shape[0] < blocks * block:
+        return [{} for _ in range(blocks)]
+    events, seconds = mine[:, 2].cumsum(0), mine[:, 3].cumsum(0)
+    weight = mine[:, 4].view(blocks, block).mean(1)
+    return [
+        {
+            "feedback_events": float(events[(k + 1) * block - 1]),
+            "trainer_minutes": float(seconds[(k + 1) * block - 1]) / 60.0,
+            "weight": float(weight[k]),
+        }
+        for k in range(blocks)
+    ]
 
 
 def _keepaway_learners(run: Run, state: dict) -> list[Run]:
@@ -137,7 +183,11 @@ def _keepaway_learners(run: Run, state: dict) -> list[Run]:
         if full == 0:
             continue
         means = seconds[: full * block].view(full, block).mean(1).tolist()
-        curve = [{"episode": (k + 1) * block, "eval/episode_seconds_mean": v} for k, v in enumerate(means)]
+        effort = _keepaway_effort(state, i, block, full) if per_learner == 1 else [{}] * full
+        curve = [
+            {"episode": (k + 1) * block, "eval/episode_seconds_mean": v, **effort[k]}
+            for k, v in enumerate(means)
+        ]
         out.append(Run(run.path, {**run.config, "seed": seed * 1000 + i}, curve))
     return out or [run]
 
@@ -157,14 +207,46 @@ def _learners(run: Run) -> list[Run]:
     if not isinstance(lines, torch.Tensor) or lines.ndim != 2 or lines.shape[0] < 2:
         return [run]
     seed = int(run.config.get("seed", 0))
+    played = int(run.rows[-1]["game"])
+    effort = _games_effort(run, state, played)
     return [
         Run(
             run.path,
             {**run.config, "seed": seed * 1000 + i},
-            [{"game": g + 1, "eval/lines_per_game_mean": float(v)} for g, v in enumerate(lines[i].tolist())],
+            [
+                {"game": g + 1, "eval/lines_per_game_mean": float(v), **effort[i][g]}
+                for g, v in enumerate(lines[i, :played].tolist())
+            ],
         )
         for i in range(lines.shape[0])
     ]
+
+
+def _games_effort(run: Run, state: dict, games: int) -> list[list[dict[str, float]]]:
+    """Per learner and game of a taught Tetris games run: events and trainer minutes so far, its weight."""
+    given, watched = state.get("given"), state.get("watched")
+    learners = state["lines"].shape[0]
+    if not isinstance(given, torch.Tensor) or not bool(given[..., 0].sum() > 0):
+        return [[{}] * games for _ in range(learners)]
+    human = run.config.get("human", {})
+    per_placement = float(human.get("seconds_per_placement", 1.0)) if isinstance(human, dict) else 1.0
+    events = given[:, :games, 0].double().cumsum(1)
+    minutes = (
+        watched[:, :games].double().cumsum(1) * per_placement / 60.0
+        if isinstance(watched, torch.Tensor)
+        else torch.full_like(events, float("nan"))
+    )
+    used = state.get("learner", {}).get("used_weight") if isinstance(state.get("learner"), dict) else None
+    out = []
+    for i in range(learners):
+        row = []
+        for g in range(games):
+            point = {"feedback_events": float(events[i, g]), "trainer_minutes": float(minutes[i, g])}
+            if isinstance(used, torch.Tensor):
+                point["weight"] = float(used[i, g])
+            row.append(point)
+        out.append(row)
+    return out
 
 
 def group_runs(runs: list[Run]) -> list[Group]:
@@ -295,7 +377,36 @@ def report(
         )
     if reach is not None:
         md += ["", _reach_table(groups, ref, reach, rows)]
+    if any(_has_effort(g) for g in groups):
+        md += ["", _effort_table(groups, rows)]
     return rows, "\n".join(md)
+
+
+def _has_effort(group: Group) -> bool:
+    return bool(group.y_key) and all("feedback_events" in r.rows[-1] for r in group.runs)
+
+
+def _effort_table(groups: list[Group], rows: list[dict[str, object]]) -> str:
+    """The human effort of each taught group (events and trainer minutes per learner at the end, the weight
+    on H^ at the first and the last point); fills the ``effort_*`` columns of ``rows``."""
+    md = [
+        "| condition | feedback events per learner | trainer minutes per learner | weight on H^, first point "
+        "| weight on H^, last point |",
+        "|---|---|---|---|---|",
+    ]
+    by_label = {r["condition"]: r for r in rows}
+    for g in groups:
+        if not _has_effort(g):
+            continue
+        cells, values = [], {}
+        for key, at in (("feedback_events", -1), ("trainer_minutes", -1), ("weight", 0), ("weight", -1)):
+            got = [float(r.rows[at][key]) for r in g.runs if key in r.rows[at]]
+            s = _ci(got) if got else None
+            cells.append(f"{s['mean']:.2f} ({s['ci95_low']:.2f} .. {s['ci95_high']:.2f})" if s else "")
+            values[f"effort_{key}_{'first' if at == 0 else 'last'}"] = s["mean"] if s else ""
+        by_label[g.label].update(values)
+        md.append(f"| {g.label} | " + " | ".join(cells) + " |")
+    return "\n".join(md)
 
 
 def _reach_table(groups: list[Group], ref: Group, level: float, rows: list[dict[str, object]]) -> str:
@@ -375,6 +486,38 @@ def plot(groups: list[Group], path: Path) -> None:
     plt.close(fig)
 
 
+def plot_effort(groups: list[Group], path: Path) -> None:
+    """Performance against feedback events given (mean over seeds), and the weight on H^ along the curve."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    drawn = [g for g in groups if _has_effort(g)]
+    colours = plt.get_cmap("tab10" if len(drawn) <= 10 else "tab20")
+    fig, (left, right) = plt.subplots(1, 2, figsize=(11, 4.2), dpi=110)
+    for i, g in enumerate(drawn):
+        n = min(len(r.rows) for r in g.runs)
+        colour = colours(i % colours.N)
+        events = [sum(float(r.rows[k]["feedback_events"]) for r in g.runs) / len(g.runs) for k in range(n)]
+        _, mean, _, _ = _curve(g)
+        left.plot(events, mean[:n], color=colour, label=f"{g.label} (n={len(g.runs)})")
+        if all("weight" in r.rows[0] for r in g.runs):
+            xs = [float(g.runs[0].rows[k][g.x_key]) for k in range(n)]
+            weights = [sum(float(r.rows[k]["weight"]) for r in g.runs) / len(g.runs) for k in range(n)]
+            right.plot(xs, weights, color=colour, label=g.label)
+    left.set_xlabel("feedback events per learner, so far")
+    left.set_ylabel(", ".join(sorted({g.y_key for g in drawn})))
+    right.set_xlabel(", ".join(sorted({g.x_key for g in drawn})))
+    right.set_ylabel("weight on H^ (mean over learners)")
+    for ax in (left, right):
+        ax.grid(alpha=0.3)
+    left.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
 def aggregate(cfg: DictConfig) -> dict[str, object]:
     """``evaluate.py runs=...``: read, group, compare, write CSV, markdown, plot; print the markdown."""
     raw = cfg.runs
@@ -411,7 +554,11 @@ def aggregate(cfg: DictConfig) -> dict[str, object]:
         writer.writerows(rows)
     (out / "summary.md").write_text(md + "\n")
     plot(groups, out / "curves.png")
-    _to_tensorboard(out)
+    plots = ["curves.png"]
+    if any(_has_effort(g) for g in groups):
+        plot_effort(groups, out / "effort.png")
+        plots.append("effort.png")
+    _to_tensorboard(out, plots)
     print(md)
     return {
         "runs": len(runs),
@@ -420,15 +567,17 @@ def aggregate(cfg: DictConfig) -> dict[str, object]:
         "summary_csv": str(out / "summary.csv"),
         "summary_md": str(out / "summary.md"),
         "plot": str(out / "curves.png"),
+        "plots": [str(out / name) for name in plots],
     }
 
 
-def _to_tensorboard(out: Path) -> None:
+def _to_tensorboard(out: Path, plots: list[str]) -> None:
     import numpy as np
     from PIL import Image
     from torch.utils.tensorboard import SummaryWriter
 
-    image = torch.from_numpy(np.array(Image.open(out / "curves.png").convert("RGB")))
     with SummaryWriter(str(out / "tensorboard")) as w:
-        w.add_image("aggregate/curves", image, 0, dataformats="HWC")
+        for name in plots:
+            image = torch.from_numpy(np.array(Image.open(out / name).convert("RGB")))
+            w.add_image(f"aggregate/{Path(name).stem}", image, 0, dataformats="HWC")
         w.add_text("aggregate/summary", (out / "summary.md").read_text(), 0)

@@ -25,9 +25,10 @@ from hfrl_torch.common.logger import BACKENDS
 from hfrl_torch.common.validation import require_bool, require_choice, require_float, require_int
 from hfrl_torch.envs.keepaway.params import KERNELS, PRESETS, KeepawayConfig
 from hfrl_torch.envs.tetris.env import ENGINES
-from hfrl_torch.fusion.schemes import FUSIONS
+from hfrl_torch.fusion.schemes import FUSIONS, OPTIONS
 from hfrl_torch.interactive.messages import MAX_SPEED, MIN_SPEED
 from hfrl_torch.models.tile_coding import MAX_SIZE
+from hfrl_torch.trainers.departure import LEAVE_UNITS
 
 DOMAINS = ("tetris", "keepaway")
 AGENTS = ("cem", "tamer", "qlearning", "pg", "sarsa")
@@ -38,6 +39,8 @@ FEATURE_SETS = ("bt", "knox", "dellacherie", "dt")
 PG_FUSIONS = ("none", "linear", "annealed")
 KEY_NAMES = ("good", "bad", "pause", "presence")
 NORMALISE = ("true", "false", "spread", "null")
+ADAPTIVE_WEIGHTS = ("adaptive", "bandit", "search")
+WEIGHTS = ("trust", *ADAPTIVE_WEIGHTS)
 MAX_TABLE_GIB = 16.0  # refuse configs whose keepaway weight tables alone would need more memory than this
 RESUMABLE = (
     "agent.iterations",
@@ -242,6 +245,7 @@ def check_tetris_trainer(cfg: DictConfig) -> None:
         check_interactive(cfg)
         return
     require_float(cfg, "trainer.reaction", 1e-6)
+    check_departure(cfg)
     if OmegaConf.select(cfg, "trainer.reference") not in (None, "dellacherie"):
         raise ConfigError(
             f"trainer.reference={cfg.trainer.reference!r} is invalid for Tetris; allowed: null "
@@ -257,6 +261,14 @@ def check_tetris_trainer(cfg: DictConfig) -> None:
         check_replay_log(cfg)
     if require_bool(cfg, "trainer.timing.enabled"):
         check_timing(cfg, tetris=True)
+
+
+def check_departure(cfg: DictConfig) -> None:
+    """``trainer.leave_after`` (null, or episodes or simulated minutes >= 0) and ``trainer.leave_unit``."""
+    if OmegaConf.select(cfg, "trainer.leave_after") is not None:
+        require_float(cfg, "trainer.leave_after", 0.0)
+    if "leave_unit" in cfg.trainer:
+        require_choice(cfg, "trainer.leave_unit", LEAVE_UNITS)
 
 
 def check_timing(cfg: DictConfig, tetris: bool) -> None:
@@ -309,7 +321,7 @@ def check_human(cfg: DictConfig, model: str) -> None:
 
 
 def check_fusion(cfg: DictConfig) -> None:
-    """``fusion``: the scheme, its weight (``trust``, a number >= 0), annealing and the common scale."""
+    """``fusion``: the scheme, its weight (``trust``, ``adaptive``, a number >= 0), annealing, the scale."""
     name = require_choice(cfg, "fusion.name", FUSIONS)
     if name in ("none", "human_only"):
         return
@@ -320,8 +332,12 @@ def check_fusion(cfg: DictConfig) -> None:
         weight = OmegaConf.select(cfg, "fusion.weight")
         if weight == "trust":
             require_float(cfg, "fusion.initial_trust", 0.0, 1.0)  # a rate of agreement
+        elif weight in ADAPTIVE_WEIGHTS:
+            check_adaptive(cfg, weight)
         elif isinstance(weight, str):
-            raise ConfigError(f"fusion.weight={weight!r} is invalid; allowed: trust, or a number >= 0")
+            raise ConfigError(
+                f"fusion.weight={weight!r} is invalid; allowed: {', '.join(WEIGHTS)}, or a number >= 0"
+            )
         else:
             require_float(cfg, "fusion.weight", 0.0)
     if "normalise" in cfg.fusion:
@@ -332,6 +348,35 @@ def check_fusion(cfg: DictConfig) -> None:
             raise ConfigError(
                 "fusion.normalise='spread' is a keepaway option; allowed here: true, false, null"
             )
+
+
+def check_adaptive(cfg: DictConfig, weight: str) -> None:
+    """``fusion.adaptive`` for ``fusion.weight`` adaptive, bandit or search: the bandit's arms and discount,
+    CE's search of the weight (a decision-level rule only: a shaped fitness grows with its weight)."""
+    name = cfg.fusion.name
+    if weight == "search" and (cfg.agent.name != "cem" or OPTIONS[name].reward != "none"):
+        raise ConfigError(
+            f"fusion.weight=search with agent={cfg.agent.name} fusion={name} is invalid: CE searches the "
+            "weight of a decision-level rule (agent=cem, fusion=linear, exponential, control_sharing, "
+            "action_biasing); use adaptive or bandit"
+        )
+    if "adaptive" not in cfg.fusion:
+        raise ConfigError(f"fusion.weight={weight} needs fusion.adaptive (arms, discount, search_std)")
+    arms = OmegaConf.select(cfg, "fusion.adaptive.arms")
+    values = list(arms) if OmegaConf.is_list(arms) else None
+    if (
+        values is None
+        or len(values) < 2
+        or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in values)
+        or not all(math.isfinite(v) and v >= 0 for v in values)
+        or len(set(values)) != len(values)
+    ):
+        raise ConfigError(
+            f"fusion.adaptive.arms={arms!r} is invalid; allowed: a list of two or more different weights >= 0"
+        )
+    require_float(cfg, "fusion.adaptive.discount", 1e-6, 1.0)
+    require_float(cfg, "fusion.adaptive.search_std", 1e-6)
+    require_float(cfg, "fusion.initial_trust", 0.0)  # the search's first mean weight
 
 
 def check_interactive(cfg: DictConfig) -> None:
@@ -474,6 +519,7 @@ def check_keepaway_feedback(cfg: DictConfig) -> None:
     check_fusion(cfg)
     if trainer == "interactive":
         return
+    check_departure(cfg)
     if trainer == "replay":
         check_replay_log(cfg)
         return

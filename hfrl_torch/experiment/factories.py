@@ -24,14 +24,23 @@ from hfrl_torch.envs.tetris.features import feature_id, feature_size
 from hfrl_torch.envs.tetris.rules import TetrisRules
 from hfrl_torch.feedback.credit import CreditModel, GammaDelay, PreviousStep, UniformDelay
 from hfrl_torch.feedback.log import FeedbackLog
+from hfrl_torch.fusion.bandit import BanditWeight
 from hfrl_torch.fusion.fusion import Fusion
-from hfrl_torch.fusion.schedules import AnnealedWeight, ConstantWeight, TrustWeight, WeightSchedule
+from hfrl_torch.fusion.schedules import (
+    AnnealedWeight,
+    ConstantWeight,
+    SearchedWeight,
+    TrustWeight,
+    WeightSchedule,
+)
+from hfrl_torch.fusion.schemes import OPTIONS
 from hfrl_torch.interactive.keepaway_live import BrowserKeeperTrainer
 from hfrl_torch.interactive.live import DEFAULT_SPEED, KEY_NAMES, LiveTeaching
 from hfrl_torch.interactive.server import TeachingServer
 from hfrl_torch.interactive.session import TeachingSession
 from hfrl_torch.models.tile_coding import TileCoding
 from hfrl_torch.trainers import HumanLikeTiming, OracleTrainer, ReplayTrainer, Trainer, ValueProxyTrainer
+from hfrl_torch.trainers.departure import Departure
 from hfrl_torch.trainers.keepaway_oracle import KeepawayOracle
 from hfrl_torch.trainers.keepaway_replay import KeepawayReplay
 from hfrl_torch.trainers.queue_trainer import QueueTrainer
@@ -196,6 +205,16 @@ def make_trainer(cfg: DictConfig, log: FeedbackLog | None) -> Trainer | None:
     )
 
 
+def make_departure(cfg: DictConfig) -> Departure:
+    """When the simulated trainer leaves (``trainer.leave_after``, ``trainer.leave_unit``); a person leaves
+    the page whenever they like, so ``trainer=interactive`` never leaves by config."""
+    t = cfg.trainer
+    after = OmegaConf.select(cfg, "trainer.leave_after")
+    if t.name in ("none", "interactive") or after is None:
+        return Departure()
+    return Departure(float(after), str(t.get("leave_unit", "episodes")))
+
+
 def make_reference_keepers(
     cfg: DictConfig, config: KeepawayConfig
 ) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None:
@@ -273,7 +292,7 @@ def make_live_teaching(cfg: DictConfig, log: FeedbackLog, view: str) -> LiveTeac
 
 def make_weight_schedule(cfg: DictConfig, learners: int = 1) -> WeightSchedule:
     """The weight on H^ of ``fusion`` for each of ``learners``: the trust factor (eq. 4.4), annealed (Knox &
-    Stone) or fixed."""
+    Stone), adaptive (a bandit on episode returns, or CE's own search) or fixed."""
     f = cfg.fusion
     if f.name in ("none", "human_only"):
         return ConstantWeight([0.0] * learners)
@@ -281,7 +300,22 @@ def make_weight_schedule(cfg: DictConfig, learners: int = 1) -> WeightSchedule:
         return AnnealedWeight([float(f.weight)] * learners, float(f.factor))
     if f.weight == "trust":
         return TrustWeight.from_initial(float(f.initial_trust), learners)
+    if f.weight in ("adaptive", "bandit", "search"):
+        if weight_estimator(cfg) == "search":
+            return SearchedWeight([float(f.initial_trust)] * learners)
+        a = f.adaptive
+        return BanditWeight(learners, list(a.arms), float(a.discount), seed=2 * int(cfg.seed) + 7)
     return ConstantWeight([float(f.weight)] * learners)
+
+
+def weight_estimator(cfg: DictConfig) -> str:
+    """What ``fusion.weight=adaptive`` means for this learner: ``search`` where CE can select the weight
+    with its own search (a decision-level rule), else ``bandit``; ``bandit`` and ``search`` name one."""
+    w = cfg.fusion.weight
+    if w != "adaptive":
+        return str(w)
+    searchable = cfg.agent.name == "cem" and OPTIONS[cfg.fusion.name].reward == "none"
+    return "search" if searchable else "bandit"
 
 
 def fusion_scaling(cfg: DictConfig) -> str:

@@ -232,14 +232,13 @@ class Fusion:
 
     def end_episode(self, ended: Tensor | None = None, performance: Tensor | float | None = None) -> None:
         """The flagged learners' episodes ended (bool [L]; None: all) with ``performance`` (lines, or hold
-        time): eq. 4.4 with their match rates for the trust factor, one step for the annealed weight; then
-        their match counts start again."""
+        time): eq. 4.4 with their match rates for the trust factor, the episode's score for the bandit, one
+        step for the annealed weight; then their match counts start again."""
         flags = torch.ones(self.learners, dtype=torch.bool) if ended is None else ended.cpu().to(torch.bool)
-        if self.schedule.kind == "trust":
+        perf = None
+        if performance is not None:
             perf = torch.as_tensor(performance, dtype=torch.float64).reshape(-1).expand(self.learners)
-            self.schedule.end_episode(perf, self.matches.rates(), flags)
-        else:
-            self.schedule.end_episode(ended=flags)
+        self.schedule.end_episode(perf, self.matches.rates(), flags)
         self.matches.reset(flags)
 
     def stats(self) -> dict[str, float]:

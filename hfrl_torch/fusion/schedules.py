@@ -25,7 +25,14 @@ from torch import Tensor
 from hfrl_torch.common.errors import CheckpointError
 from hfrl_torch.fusion.trust import IncrementalTrust
 
-__all__ = ["AnnealedWeight", "ConstantWeight", "TrustWeight", "WeightSchedule", "as_schedule"]
+__all__ = [
+    "AnnealedWeight",
+    "ConstantWeight",
+    "SearchedWeight",
+    "TrustWeight",
+    "WeightSchedule",
+    "as_schedule",
+]
 
 MatchRateLike = float | None
 
@@ -306,6 +313,25 @@ class TrustWeight(WeightSchedule):
 
     def __repr__(self) -> str:
         return f"TrustWeight({[t.value for t in self.trusts]})"
+
+
+class SearchedWeight(ConstantWeight):
+    """A weight the learner's own search sets: CE's ``fusion.weight=adaptive`` samples it as one more
+    dimension of its Gaussian, so the games' scores select it with the value function's weights. The
+    schedule holds the weight of the current mean policy (:meth:`set`); episodes do not move it.
+
+    :param w: the weight before the first search step (>= 0), or one per learner.
+    """
+
+    kind = "search"
+
+    def set(self, w: float | Sequence[float] | Tensor) -> None:
+        """The searched weight of each learner from now on (clamped at 0: a negative weight is no H^)."""
+        value = torch.as_tensor(w, dtype=torch.float64).detach().cpu().reshape(-1).clamp(min=0.0)
+        self.weight = _weights(value.expand(self.learners).clone(), "SearchedWeight w")
+
+    def __repr__(self) -> str:
+        return f"SearchedWeight({self.weight.tolist()})"
 
 
 def as_schedule(weight: float | Sequence[float] | Tensor | WeightSchedule) -> WeightSchedule:

@@ -59,15 +59,36 @@ class CrossEntropyMethod:
     :param config: population, elite, variance and noise settings.
     :param rollout: plays games of given weight vectors and seeds, returns lines and pieces.
     :param seed: the run's seed.
+    :param mean: the initial mean of every dimension (default ``config.initial_mean`` for all).
+    :param scale: each dimension's standard deviation relative to the config's (default 1 for all): its
+        initial variance and its noise are the config's times ``scale ** 2``. A dimension on another scale
+        than the value weights, such as the fusion weight CE searches with them, gets its own this way.
     """
 
-    def __init__(self, num_features: int, config: CEMConfig, rollout: Rollout, seed: int) -> None:
+    def __init__(
+        self,
+        num_features: int,
+        config: CEMConfig,
+        rollout: Rollout,
+        seed: int,
+        *,
+        mean: torch.Tensor | None = None,
+        scale: torch.Tensor | None = None,
+    ) -> None:
         self.config = config
         self.rollout = rollout
         self.seed = seed
         self.iteration = 0
-        self.mean = torch.full((num_features,), config.initial_mean, dtype=torch.float64)
-        self.variance = torch.full((num_features,), config.initial_variance, dtype=torch.float64)
+        ones = torch.ones(num_features, dtype=torch.float64)
+        self.scale = ones if scale is None else torch.as_tensor(scale, dtype=torch.float64).clone()
+        if self.scale.shape != (num_features,) or not bool((self.scale > 0).all()):
+            raise ValueError(f"CE scale must be {num_features} numbers > 0, got {self.scale.tolist()}")
+        self.mean = (
+            ones * config.initial_mean if mean is None else torch.as_tensor(mean, dtype=torch.float64).clone()
+        )
+        if self.mean.shape != (num_features,):
+            raise ValueError(f"CE mean must have {num_features} entries, got {tuple(self.mean.shape)}")
+        self.variance = config.initial_variance * self.scale**2
 
     def noise(self, t: int) -> float:
         """Variance added to the elite's at iteration ``t`` (0-based)."""
@@ -99,7 +120,7 @@ class CrossEntropyMethod:
 
         elite = torch.argsort(scores, descending=True, stable=True)[: c.n_elite]
         self.mean = candidates[elite].mean(0)
-        self.variance = candidates[elite].var(0, unbiased=False) + self.noise(t)
+        self.variance = candidates[elite].var(0, unbiased=False) + self.noise(t) * self.scale**2
         self.iteration += 1
 
         pop = summarize(lines_per_candidate, floor=0.0)
@@ -113,7 +134,7 @@ class CrossEntropyMethod:
             "population/placements": float(pieces.sum()),
             "population/capped_share": float(capped.double().mean()),
             "cem/noise": self.noise(t),
-            "cem/std_mean": float(self.variance.sqrt().mean()),
+            "cem/std_mean": float((self.variance.sqrt() / self.scale).mean()),
         }
         if shaped:
             metrics["population/shaping_bonus_mean"] = float((fitness - lines.to(torch.float64)).mean())

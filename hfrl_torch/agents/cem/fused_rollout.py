@@ -5,6 +5,8 @@ The rollout of CE + human feedback (thesis Figure 4.1): every candidate plays it
 decision rule at its current weight (trust factor, annealed or fixed), in the compiled games of
 :mod:`hfrl_torch.fusion.compiled`. With ``reward_shaping`` the candidates act on R alone and are ranked on
 the fusion's reward, ``lines + beta * sum H^`` over their games (Knox & Stone's R' = R + beta H^ over a game).
+With ``searches_weight`` (``fusion.weight=adaptive``) each candidate's last entry is its own weight on H^,
+clamped at 0: CE searches the weight together with R's, and the games' lines select both.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ class FusedRollout:
     :param human_features: H^'s feature set (``knox`` or ``bt``).
     :param fusion: the one fusion component (rule, scale, weight).
     :param max_pieces: cap on placements per game (0: none).
+    :param searches_weight: candidates carry their weight on H^ as a last entry (a decision-level rule).
     """
 
     def __init__(
@@ -36,7 +39,13 @@ class FusedRollout:
         human_features: str,
         fusion: Fusion,
         max_pieces: int = 0,
+        searches_weight: bool = False,
     ) -> None:
+        if searches_weight and fusion.reward_rule != "none":
+            raise ValueError(
+                f"CE cannot search the weight of {fusion.reward_rule!r}: its fitness grows with the weight"
+            )
+        self.searches_weight = searches_weight
         self.rules = rules
         self.env_features = env_features
         self.human_features = human_features
@@ -48,6 +57,9 @@ class FusedRollout:
     def __call__(self, weights: torch.Tensor, seeds: torch.Tensor) -> tuple[torch.Tensor, ...]:
         if self.human_weights is None:
             raise RuntimeError("FusedRollout.human_weights is unset: give it H^'s weights before playing")
+        weight = None
+        if self.searches_weight:
+            weights, weight = weights[:, :-1], weights[:, -1].clamp(min=0.0)
         games = play_fused(
             self.rules,
             self.env_features,
@@ -56,6 +68,7 @@ class FusedRollout:
             self.human_weights,
             self.fusion,
             seeds,
+            weight=weight,
             max_pieces=self.max_pieces,
         )
         self.last = games

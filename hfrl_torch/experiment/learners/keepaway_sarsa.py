@@ -53,6 +53,7 @@ from hfrl_torch.envs.keepaway.records import (
     KeepawayRecords,
 )
 from hfrl_torch.experiment.factories import (
+    make_departure,
     make_device,
     make_fusion,
     make_keepaway_config,
@@ -70,6 +71,8 @@ from hfrl_torch.interactive.keepaway_live import KeepawayWatcher, wait_for_teach
 from hfrl_torch.interactive.live import LiveTeaching
 
 STEPS_PER_CHUNK = 200  # env steps per chunk (each usually one simulator cycle)
+# one row per finished episode of a taught learner: its human effort and the weight it was played at
+EFFORT_COLUMNS = ("field", "episode", "events", "trainer_seconds", "weight")
 
 
 class SarsaKeepers(Learner):
@@ -105,6 +108,11 @@ class SarsaKeepers(Learner):
             self.channel = FeedbackChannel(fields)
             self.feedback = torch.zeros(fields, dtype=torch.int64)  # events learned from, per learner
             self.positive = torch.zeros(fields, dtype=torch.int64)
+            self.departure = make_departure(cfg)
+            # the human effort of each field's episode in progress: events given, cycles the trainer watched
+            self.episode_given = torch.zeros(fields, dtype=torch.int64)
+            self.episode_watched = torch.zeros(fields, dtype=torch.int64)
+            self.effort = torch.zeros(0, len(EFFORT_COLUMNS), dtype=torch.float64)
         if checkpoint is not None:
             self._load(checkpoint["state"])
         env = KeepawayEnv(
@@ -247,18 +255,43 @@ class SarsaKeepers(Learner):
         self.records.advance(after[keys.EPISODE_CYCLES])
         if self.taught:
             self._deliver(after)
+            self.episode_watched += self.present.to(torch.int64)
         if bool(ended.any()):
             done_rows = ended.nonzero().squeeze(-1)
             slots = (done_rows.unsqueeze(1) * n + torch.arange(n, device=done_rows.device)).reshape(-1)
             end_rewards = after[keys.EPISODE_END_REWARDS][done_rows].reshape(-1)
             if self.taught:
                 lasted = after[keys.EPISODE_CYCLES].view(-1).double().cpu() / CYCLES_PER_SECOND
+                self._book_effort(ended.cpu())
                 self.fusion.end_episode(ended.cpu(), lasted)
                 self.trainer.new_episodes(ended.cpu())
             agent.end_episode(slots, end_rewards)
             self.records.finish(ended, after[keys.EPISODE_CYCLES])
         self.td = td_next
         self.records.advance(td_next[keys.EPISODE_CYCLES])
+
+    @property
+    def present(self) -> torch.Tensor:
+        """Bool [B]: the fields whose trainer is still there (``trainer.leave_after``)."""
+        rec = self.records
+        return self.departure.present(rec.episodes, rec.learner_clock.double() / CYCLES_PER_SECOND)
+
+    def _book_effort(self, ended: torch.Tensor) -> None:
+        """One effort row per field whose episode ended: its events, the trainer's seconds, its weight."""
+        rows = ended.nonzero().flatten()
+        effort = torch.stack(
+            [
+                rows.double(),
+                self.records.episodes[rows].double(),
+                self.episode_given[rows].double(),
+                self.episode_watched[rows].double() / CYCLES_PER_SECOND,
+                self.fusion.weight()[rows],
+            ],
+            dim=1,
+        )
+        self.effort = torch.cat([self.effort, effort])
+        self.episode_given[rows] = 0
+        self.episode_watched[rows] = 0
 
     def _fused_decision(
         self,
@@ -305,7 +338,9 @@ class SarsaKeepers(Learner):
         full_action[f] = chosen.cpu()
         full_keeper = torch.zeros(b, dtype=torch.int64)
         full_keeper[f] = keeper.cpu()
-        values, times = self.trainer.give(full_obs, full_action, deciding, self.clock, full_keeper)
+        judged = deciding & self.present
+        values, times = self.trainer.give(full_obs, full_action, judged, self.clock, full_keeper)
+        self.episode_given += (values != 0).to(torch.int64)
         self.channel.put(values, times, self.trainer.source)
         return chosen
 
@@ -374,9 +409,12 @@ class SarsaKeepers(Learner):
         """The weight, R's spread and the feedback so far, per learner (with a trainer)."""
         if not self.taught:
             return {}
+        watched = self.effort[:, 3].sum() + self.episode_watched.sum() / CYCLES_PER_SECOND
         return {
             **self.fusion.stats(),
             "feedback/events_per_learner": float(self.feedback.double().mean()),
+            "feedback/trainer_minutes_per_learner": float(watched) / 60.0 / self.fields,
+            "feedback/trainer_present_share": float(self.present.double().mean()),
             "feedback/positive_share": float(self.positive.sum() / self.feedback.sum().clamp(min=1)),
             "feedback/credited_share": self.tamer.credited_share,
         }
@@ -412,6 +450,8 @@ class SarsaKeepers(Learner):
                 "feedback": self.feedback.clone(),
                 "positive": self.positive.clone(),
                 "tamer_counts": [self.tamer.decisions, self.tamer.credited],
+                "effort": self.effort.clone(),
+                "effort_columns": list(EFFORT_COLUMNS),
             }
             human = {
                 "scheme": self.cfg.fusion.name,
@@ -452,6 +492,7 @@ class SarsaKeepers(Learner):
                 self.feedback.copy_(human["feedback"])
                 self.positive.copy_(human["positive"])
                 self.tamer.decisions, self.tamer.credited = (int(x) for x in human["tamer_counts"])
+                self.effort = human["effort"].to(torch.float64).clone()
         except (KeyError, TypeError, RuntimeError, ValueError) as e:
             raise CheckpointError(
                 f"checkpoint of {self.run_dir} is not this keepaway run's ({e!r})"

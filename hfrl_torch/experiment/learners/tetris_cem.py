@@ -51,6 +51,7 @@ from hfrl_torch.envs.tetris.env import TetrisEnv
 from hfrl_torch.envs.tetris.features import feature_id, feature_names
 from hfrl_torch.experiment.factories import (
     make_cem_config,
+    make_departure,
     make_fusion,
     make_live_teaching,
     make_rollout,
@@ -82,15 +83,30 @@ class CEMLearner(Learner):
         self.taught = cfg.trainer.name != "none"
         self.teaching: LiveTeaching | None = None
         self.log: FeedbackLog | None = None
+        n = len(self.names)
+        mean = scale = None
+        self.searches_weight = False
         if self.taught:
             self._build_feedback(cfg, run_dir)
+            self.searches_weight = self.fusion.schedule.kind == "search"
             rollout = FusedRollout(
-                self.rules, cfg.domain.features, cfg.human.features, self.fusion, cfg.domain.max_pieces
+                self.rules,
+                cfg.domain.features,
+                cfg.human.features,
+                self.fusion,
+                cfg.domain.max_pieces,
+                searches_weight=self.searches_weight,
             )
+            if self.searches_weight:  # the weight on H^ is one more dimension of the search, on its own scale
+                ce = make_cem_config(cfg)
+                mean = torch.cat([torch.full((n,), ce.initial_mean), self.fusion.weight()[:1]])
+                std = float(cfg.fusion.adaptive.search_std) / math.sqrt(ce.initial_variance)
+                scale = torch.cat([torch.ones(n), torch.tensor([std])])
+                n += 1
         else:
             rollout = make_rollout(cfg)
         self.rollout = rollout
-        self.cem = CrossEntropyMethod(len(self.names), make_cem_config(cfg), rollout, seed=cfg.seed)
+        self.cem = CrossEntropyMethod(n, make_cem_config(cfg), rollout, seed=cfg.seed, mean=mean, scale=scale)
         if checkpoint is not None:
             self._load(checkpoint["state"])
 
@@ -101,6 +117,7 @@ class CEMLearner(Learner):
         self.human = make_tamer(cfg, 1, len(self.human_names))
         self.channel = FeedbackChannel(1)
         self.clock = 0.0
+        self.seconds_per_placement = float(h.seconds_per_placement)
         self.log = FeedbackLog(run_dir / "feedback.jsonl", session=run_dir.name)
         if cfg.trainer.name == "interactive":
             self.teaching = make_live_teaching(cfg, self.log, view="tetris")
@@ -112,11 +129,17 @@ class CEMLearner(Learner):
                 self.trainer.source if self.trainer.source != "trainer" else f"simulated:{cfg.trainer.name}"
             )
             self.who = f"{source} (trainer={cfg.trainer.name}; a simulated or replayed trainer, not a person)"
+        self.departure = make_departure(cfg)
         self.watched = TransformedEnv(
             TetrisEnv(batch=1, rules=self.rules, features=h.features, max_pieces=cfg.agent.watch_pieces),
             FeedbackFusion(self.fusion),
         )
         self.choose = FusionModule(self.fusion, select="greedy", count=False)
+
+    @property
+    def value_weights(self) -> torch.Tensor:
+        """The mean policy's value weights (without the searched weight on H^)."""
+        return self.cem.mean[: len(self.names)]
 
     @property
     def total(self) -> float:
@@ -159,12 +182,17 @@ class CEMLearner(Learner):
         if self.taught:
             weight = float(self.fusion.weight()[0])  # 0 for none and human_only
             self.fusion.generator.manual_seed(_derived_seed(self.cfg.seed, t, 4))
-            watched = self.watch_game(_derived_seed(self.cfg.seed, t, 3), t)
+            watched = dict.fromkeys(("env_return", "fused_return", "placements", "given", "positive"), 0.0)
+            if bool(self.departure.present(torch.tensor(t), self.clock)):  # the trainer's game
+                watched = self.watch_game(_derived_seed(self.cfg.seed, t, 3), t)
             live = self.teaching.session if self.teaching is not None else None
             if live is not None:
                 live.publish({"type": "status", "text": f"practising on its own (CE iteration {t + 1})"})
             self.rollout.human_weights = self.human.model.weight[0].detach().clone()
         metrics.update(self.cem.step())
+        if self.searches_weight:
+            self.fusion.schedule.set(self.cem.mean[-1])
+            metrics["fusion/search_std"] = float(self.cem.variance[-1].sqrt())
         eval_lines = self.cem.evaluate_mean()
         ev = summarize(eval_lines, floor=0.0)
         elapsed = time.perf_counter() - t0
@@ -192,6 +220,7 @@ class CEMLearner(Learner):
                     if watched["given"]
                     else 0.0,
                     "feedback/trainer_present": float(watched["given"] > 0),
+                    "feedback/trainer_minutes": watched["placements"] * self.seconds_per_placement / 60.0,
                     "feedback/learned_total": float(self.human.applied.sum()),
                     "fusion/weight": weight,
                     "fusion/weight_next": float(self.fusion.weight()[0]),
@@ -217,7 +246,7 @@ class CEMLearner(Learner):
         placement is shown on the page, and the game stops early if the person leaves.
         """
         env, live = self.watched, self.teaching.session if self.teaching is not None else None
-        n_env = self.cem.mean.numel()
+        n_env = len(self.names)
         env.set_seed(game_seed)  # a TransformedEnv passes no reset_game_seed down: seed the env's own draw
         td = env.reset()
         totals = {"env_return": 0.0, "fused_return": 0.0, "placements": 0.0, "given": 0.0, "positive": 0.0}
@@ -230,7 +259,7 @@ class CEMLearner(Learner):
                 now = live.wait_turn()
             self._learn_due(td, now)
             feats = td[keys.AFTERSTATE_FEATURES][..., :n_env].to(torch.float64)
-            td.set(keys.ENV_VALUES, (feats * self.cem.mean).sum(-1))
+            td.set(keys.ENV_VALUES, (feats * self.value_weights).sum(-1))
             td.set(keys.HUMAN_VALUES, self.human.model(placement_deltas(td)))
             action = self.choose(td).get(keys.ACTION)
             events = self.trainer.give(td, action, now, episode_t)
@@ -293,7 +322,7 @@ class CEMLearner(Learner):
             "kind": "linear",
             "features": self.cfg.domain.features,
             "feature_names": self.names,
-            "weights": self.cem.mean.clone(),
+            "weights": self.value_weights.clone(),
         }
         if not self.taught:
             return {"state": self.cem.state_dict(), "policy": policy, "rules": self.rules.as_dict()}

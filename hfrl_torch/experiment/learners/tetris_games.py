@@ -31,6 +31,7 @@ from hfrl_torch.common.stats import summarize
 from hfrl_torch.envs.tetris.env import TetrisEnv
 from hfrl_torch.envs.tetris.features import feature_id, feature_names, feature_size
 from hfrl_torch.experiment.factories import (
+    make_departure,
     make_env,
     make_fusion,
     make_rollout,
@@ -67,6 +68,7 @@ class TetrisGames(Learner):
         self.given = torch.zeros(
             L, G, 3, dtype=torch.int64
         )  # events given in each game: all, positive, negative
+        self.watched = torch.zeros(L, G, dtype=torch.int64)  # placements of each game the trainer watched
         self.placement = 0
         self.closed = 0
         self.log: FeedbackLog | None = None
@@ -79,6 +81,7 @@ class TetrisGames(Learner):
                 cfg, L, feature_size(feature_id(h.features), self.rules.width)
             )
             self.seconds_per_placement = float(h.seconds_per_placement)
+            self.departure = make_departure(cfg)
         else:
             self.trainer, self.human = None, None
         self.fusion = make_fusion(cfg, L, seed=2 * int(cfg.seed) + 5, option=self.fusion_option)
@@ -179,6 +182,7 @@ class TetrisGames(Learner):
     def judge(self, td: TensorDictBase, action: torch.Tensor, active: torch.Tensor) -> None:
         """After a choice: the trainer judges each active board's placement; H^ remembers it for credit."""
         now = self.clock
+        active = active & self.departure.present(self.played, now)
         events = self.trainer.give(td, action, now, self.played, active)
         self.human.record(td, action, now, active)
         self.channel.put_events(events)
@@ -188,6 +192,7 @@ class TetrisGames(Learner):
             [[len(e), sum(x.value > 0 for x in e), sum(x.value < 0 for x in e)] for e in events]
         )
         self.given[rows, g] += torch.where(active.unsqueeze(-1), count, 0)
+        self.watched[rows, g] += active.to(torch.int64)
 
     def human_values(self, td: TensorDictBase) -> torch.Tensor:
         """H^ of every placement [L, A]: w . (f(s') - f(s))."""
@@ -233,6 +238,9 @@ class TetrisGames(Learner):
         return {
             "feedback/given_mean": float(fb.mean()),
             "feedback/positive_share": float(given[:, g, 1].sum() / fb.sum()) if fb.sum() > 0 else 0.0,
+            "feedback/trainer_minutes_mean": float(self.watched[:, g].double().mean())
+            * self.seconds_per_placement
+            / 60.0,
         }
 
     def save_due(self) -> bool:
@@ -251,6 +259,7 @@ class TetrisGames(Learner):
             "pieces": self.pieces.clone(),
             "played": self.played.clone(),
             "given": self.given.clone(),
+            "watched": self.watched.clone(),
             "placement": self.placement,
             "closed": self.closed,
             "fusion": self.fusion.state_dict(),
@@ -277,6 +286,8 @@ class TetrisGames(Learner):
         td = self.env.load_state_dict(state["env"])
         self.lines, self.pieces = self.widen(state["lines"]), self.widen(state["pieces"])
         self.played, self.given = state["played"].clone(), self.widen(state["given"])
+        if "watched" in state:  # checkpoints before trainer.leave_after did not count it
+            self.watched = self.widen(state["watched"])
         self.placement, self.closed = int(state["placement"]), int(state["closed"])
         self.fusion.load_state_dict(state["fusion"])
         self.load_learner_state(state["learner"])

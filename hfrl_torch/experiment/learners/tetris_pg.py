@@ -93,7 +93,7 @@ class PolicyGradientLearner(TetrisGames):
             m = self.match_rate[:, g]
             metrics.update(
                 {
-                    "feedback/given_mean": float(self.given[:, g, 0].double().mean()),
+                    **self.feedback_metrics(g),
                     "fusion/weight_mean": float(self.used_weight[:, g].mean()),
                     "fusion/match_rate_mean": float(m[~m.isnan()].mean())
                     if bool((~m.isnan()).any())

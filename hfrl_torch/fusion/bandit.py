@@ -1,0 +1,166 @@
+"""A weight on H^ chosen by the environment's own evidence: discounted Thompson sampling over weights.
+
+``fusion.weight=bandit`` (and ``adaptive`` for every learner but CE): each learner plays each episode at one
+weight of ``arms`` and scores it by the episode's performance (lines, or hold time); the next episode's weight
+is the arm whose sampled mean score is highest. The score is ``log(1 + performance)``: Tetris lines and
+keepaway hold times are skewed and multiplicative (a policy twice as good scores a constant more), so the log
+makes arms' noise comparable. Evidence is discounted by ``discount`` per episode of the learner (Raj &
+Kalyani 2017, "Taming non-stationary bandits"), so arms not played lately grow uncertain and are tried again:
+the weight follows a trainer who leaves (H^ frozen while Q improves) or an H^ that gets better or worse.
+
+The model of each arm's mean is Gaussian, shrunk towards the learner's pooled mean by ``prior_count``
+pseudo-episodes, with the learner's pooled residual variance (a known-variance Thompson sampler with an
+empirical-Bayes prior). The first episode plays the highest weight: a learner trusts its teacher until the
+returns say otherwise, as the thesis's agents do.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from hfrl_torch.common.errors import CheckpointError
+from hfrl_torch.fusion.schedules import WeightSchedule, _ended, _per_learner, _weights
+
+__all__ = ["DEFAULT_ARMS", "BanditWeight"]
+
+DEFAULT_ARMS = (0.0, 1.0, 16.0)  # no H^, an equal say, H^ decides
+PRIOR_VARIANCE = 0.25  # of a score (log scale) before any evidence: a factor of about e^0.5 either way
+MIN_VARIANCE = 0.01  # the pooled variance's floor, so one lucky streak cannot make an arm certain
+
+
+class BanditWeight(WeightSchedule):
+    """Per learner, the weight of its current episode: one of ``arms``, by discounted Thompson sampling.
+
+    :param learners: L, each with its own evidence and draws.
+    :param arms: the weights to choose from (>= 0, at least two).
+    :param discount: evidence kept per episode of the learner, in (0, 1] (1: stationary).
+    :param prior_count: pseudo-episodes of the pooled mean each arm starts with (> 0).
+    :param seed: seed of the draws.
+    """
+
+    kind = "bandit"
+
+    def __init__(
+        self,
+        learners: int,
+        arms: Sequence[float] | Tensor = DEFAULT_ARMS,
+        discount: float = 0.99,
+        prior_count: float = 1.0,
+        seed: int = 0,
+    ) -> None:
+        super().__init__(learners)
+        grid = _weights(arms, "bandit arms")
+        if grid.numel() < 2:
+            raise ValueError(f"bandit arms must hold at least two weights, got {grid.tolist()}")
+        if not (0.0 < float(discount) <= 1.0):
+            raise ValueError(f"bandit discount must be in (0, 1], got {discount!r}")
+        if not (math.isfinite(float(prior_count)) and float(prior_count) > 0.0):
+            raise ValueError(f"bandit prior_count must be > 0, got {prior_count!r}")
+        self.arms = grid
+        self.discount, self.prior_count = float(discount), float(prior_count)
+        shape = (self.learners, grid.numel())
+        self.count = torch.zeros(shape, dtype=torch.float64)  # discounted episodes per arm
+        self.total = torch.zeros(shape, dtype=torch.float64)  # discounted sum of scores
+        self.square = torch.zeros(shape, dtype=torch.float64)  # discounted sum of squared scores
+        self.arm = torch.full((self.learners,), int(grid.argmax()), dtype=torch.int64)
+        self.generator = torch.Generator().manual_seed(int(seed))
+
+    def _parameters_at(self, episode: Tensor) -> Tensor:
+        return self._lay(self.arms[self.arm], episode)
+
+    @staticmethod
+    def score(performance: Tensor) -> Tensor:
+        """What an episode is judged by: ``log(1 + performance)``."""
+        return torch.log1p(performance.to(torch.float64).clamp(min=0.0))
+
+    def posterior(self) -> tuple[Tensor, Tensor]:
+        """Mean and variance [L, K] of each arm's mean score, given the evidence so far."""
+        n = self.count.sum(-1, keepdim=True)
+        pooled = torch.where(n > 0, self.total.sum(-1, keepdim=True) / n.clamp(min=1e-12), 0.0)
+        # pooled residual variance about each arm's own mean, with PRIOR_VARIANCE as one pseudo-episode
+        arm_mean = self.total / self.count.clamp(min=1e-12)
+        residual = (self.square - self.count * arm_mean**2).clamp(min=0.0).sum(-1, keepdim=True)
+        variance = ((residual + PRIOR_VARIANCE) / (n + 1.0)).clamp(min=MIN_VARIANCE)
+        weight = self.count + self.prior_count
+        mean = (self.total + self.prior_count * pooled) / weight
+        return mean, variance / weight
+
+    def end_episode(
+        self,
+        performance: float | Sequence[float] | Tensor | None = None,
+        match_rate: Any = None,
+        ended: Tensor | Sequence[bool] | None = None,
+    ) -> None:
+        """Score the flagged learners' episodes at their current arms, discount, and draw their next arms."""
+        if performance is None:
+            raise ValueError("BanditWeight.end_episode needs the episode's performance (lines, or hold time)")
+        flags = _ended(ended, self.learners)
+        perf = torch.tensor([float(p) for p in _per_learner(performance, self.learners, "performance")])
+        if not bool(torch.isfinite(perf[flags]).all()):
+            raise ValueError(f"bandit performance must be finite, got {perf[flags].tolist()}")
+        rows = flags.nonzero().flatten()
+        if rows.numel():
+            y = self.score(perf[rows])
+            keep = torch.full((rows.numel(), 1), self.discount, dtype=torch.float64)
+            self.count[rows] *= keep
+            self.total[rows] *= keep
+            self.square[rows] *= keep
+            arm = self.arm[rows]
+            self.count[rows, arm] += 1.0
+            self.total[rows, arm] += y
+            self.square[rows, arm] += y * y
+            mean, variance = self.posterior()
+            draw = torch.randn(mean.shape, generator=self.generator, dtype=torch.float64)
+            sampled = mean + variance.sqrt() * draw  # every learner draws, so draws do not depend on flags
+            self.arm[rows] = sampled[rows].argmax(-1)
+        super().end_episode(ended=flags)
+
+    def probabilities(self, draws: int = 1000) -> Tensor:
+        """Each arm's chance [L, K] of being drawn next (a Monte Carlo estimate, for the logs and tests)."""
+        mean, variance = self.posterior()
+        g = torch.Generator().manual_seed(0)
+        sampled = mean + variance.sqrt() * torch.randn((draws, *mean.shape), generator=g, dtype=torch.float64)
+        best = sampled.argmax(-1)
+        return torch.nn.functional.one_hot(best, self.arms.numel()).to(torch.float64).mean(0)
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            **super().state_dict(),
+            "arms": self.arms.tolist(),
+            "discount": self.discount,
+            "prior_count": self.prior_count,
+            "count": self.count.clone(),
+            "total": self.total.clone(),
+            "square": self.square.clone(),
+            "arm": self.arm.clone(),
+            "generator": self.generator.get_state(),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        super().load_state_dict(state)
+        try:
+            arms = _weights(state["arms"], "arms")
+            stats = [state[k].to(torch.float64) for k in ("count", "total", "square")]
+            arm = state["arm"].to(torch.int64)
+            self.generator.set_state(state["generator"])
+            discount, prior_count = float(state["discount"]), float(state["prior_count"])
+        except (KeyError, TypeError, AttributeError, RuntimeError, ValueError) as e:
+            raise CheckpointError(f"bad BanditWeight state ({e!r})") from None
+        if arms.tolist() != self.arms.tolist():
+            raise CheckpointError(
+                f"bad BanditWeight state: arms {arms.tolist()}, this run has {self.arms.tolist()}"
+            )
+        if any(s.shape != self.count.shape for s in stats) or arm.shape != self.arm.shape:
+            raise CheckpointError("bad BanditWeight state: evidence of another number of learners or arms")
+        if bool(((arm < 0) | (arm >= arms.numel())).any()):
+            raise CheckpointError(f"bad BanditWeight state: arm indices {arm.tolist()} out of range")
+        self.count, self.total, self.square = (s.clone() for s in stats)
+        self.arm, self.discount, self.prior_count = arm.clone(), discount, prior_count
+
+    def __repr__(self) -> str:
+        return f"BanditWeight(arms={self.arms.tolist()}, discount={self.discount}, learners={self.learners})"

@@ -1,0 +1,184 @@
+"""The adaptive weight's estimators on constructed evidence: the bandit rises for a helpful H^, falls for a
+harmful one and follows a trainer who leaves; CE's searched weight; checkpoints of both."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from hfrl_torch.common.errors import CheckpointError
+from hfrl_torch.fusion.bandit import DEFAULT_ARMS, BanditWeight
+from hfrl_torch.fusion.schedules import SearchedWeight
+
+ARMS = DEFAULT_ARMS  # (0, 1, 16): no H^, an equal say, H^ decides
+
+
+def play(bandit: BanditWeight, episodes: int, returns, seed: int = 0) -> torch.Tensor:
+    """Run ``episodes`` episodes where arm weight w earns ``returns(w, episode)`` times lognormal noise;
+    returns the weights played [episodes, L]."""
+    g = torch.Generator().manual_seed(seed)
+    played = []
+    for e in range(episodes):
+        w = bandit.value()
+        played.append(w.clone())
+        noise = torch.exp(0.4 * torch.randn(w.shape, generator=g, dtype=torch.float64))
+        bandit.end_episode(performance=returns(w, e) * noise)
+    return torch.stack(played)
+
+
+def helpful(w: torch.Tensor, e: int) -> torch.Tensor:
+    return 4.0 + 10.0 * (w / 16.0).sqrt()  # the more H^, the better: 4 s without, 14 s at the top
+
+
+def harmful(w: torch.Tensor, e: int) -> torch.Tensor:
+    return 6.0 - 3.0 * (w / 16.0).sqrt()  # H^ hurts: 6 s without, 3 s at the top
+
+
+def test_first_episode_trusts_the_teacher() -> None:
+    assert BanditWeight(3).value().tolist() == [16.0] * 3
+
+
+def test_rises_for_a_helpful_h() -> None:
+    bandit = BanditWeight(20, ARMS, seed=1)
+    played = play(bandit, 60, helpful)
+    late = played[30:]
+    assert float((late == 16.0).double().mean()) > 0.7
+    assert float(late.mean()) > 10.0
+
+
+def test_falls_for_a_harmful_h() -> None:
+    bandit = BanditWeight(20, ARMS, seed=2)
+    played = play(bandit, 60, harmful)
+    late = played[30:]
+    assert float((late == 16.0).double().mean()) < 0.05  # the harmful H^ no longer decides
+    assert float(late.mean()) < 1.5  # mostly no H^; an equal say costs little here, so it is tried
+
+
+def test_follows_a_trainer_who_leaves() -> None:
+    """H^ helps for 100 episodes, then Q overtakes it (H^ frozen, Q still learning): the weight goes."""
+
+    def overtaken(w: torch.Tensor, e: int) -> torch.Tensor:
+        q_only = 4.0 + 12.0 * min(e / 300.0, 1.0)  # Q alone reaches 16 s by episode 300
+        return torch.where(w > 0, 12.0 + 0 * w, torch.full_like(w, q_only)) * (1.0 - 0.02 * (w / 16.0))
+
+    bandit = BanditWeight(20, ARMS, seed=3)
+    played = play(bandit, 500, overtaken)
+    assert float((played[50:100] > 0).double().mean()) > 0.7  # H^ worth more than Q early
+    assert float((played[-100:] == 0).double().mean()) > 0.7  # Q alone once it is better
+
+
+def test_stationary_discount_keeps_evidence() -> None:
+    bandit = BanditWeight(1, (0.0, 1.0), discount=1.0)
+    bandit.end_episode(performance=torch.tensor([10.0]))
+    bandit.end_episode(performance=torch.tensor([10.0]))
+    assert float(bandit.count.sum()) == pytest.approx(2.0)
+
+
+def test_only_flagged_learners_move() -> None:
+    bandit = BanditWeight(3, ARMS, seed=0)
+    bandit.end_episode(performance=torch.tensor([1.0, 2.0, 3.0]), ended=torch.tensor([False, True, False]))
+    assert bandit.count[[0, 2]].sum() == 0 and bandit.count[1].sum() == pytest.approx(1.0)
+    assert bandit.episodes.tolist() == [0, 1, 0]
+
+
+def test_probabilities_sum_to_one_and_favour_the_better_arm() -> None:
+    bandit = BanditWeight(1, (0.0, 1.0), seed=0)
+    for _ in range(10):
+        bandit.arm[:] = 0
+        bandit.end_episode(performance=torch.tensor([3.0]))
+        bandit.arm[:] = 1
+        bandit.end_episode(performance=torch.tensor([12.0]))
+    p = bandit.probabilities()
+    assert float(p.sum()) == pytest.approx(1.0)
+    assert float(p[0, 1]) > 0.95
+
+
+def test_resume_continues_the_same_draws() -> None:
+    a = BanditWeight(4, ARMS, seed=5)
+    play(a, 20, helpful)
+    b = BanditWeight(4, ARMS, seed=99)
+    b.load_state_dict(a.state_dict())
+    assert torch.equal(play(a, 20, helpful, seed=7), play(b, 20, helpful, seed=7))
+
+
+def test_bad_states_and_arguments_are_refused() -> None:
+    with pytest.raises(ValueError, match="at least two"):
+        BanditWeight(1, (1.0,))
+    with pytest.raises(ValueError, match=">= 0"):
+        BanditWeight(1, (-1.0, 1.0))
+    with pytest.raises(ValueError, match="discount"):
+        BanditWeight(1, ARMS, discount=0.0)
+    with pytest.raises(ValueError, match="performance"):
+        BanditWeight(1, ARMS).end_episode()
+    state = BanditWeight(2, ARMS).state_dict()
+    with pytest.raises(CheckpointError, match="arms"):
+        BanditWeight(2, (0.0, 2.0)).load_state_dict(state)
+    with pytest.raises(CheckpointError):
+        BanditWeight(3, ARMS).load_state_dict(state)
+    with pytest.raises(CheckpointError, match="bandit"):
+        BanditWeight(2, ARMS).load_state_dict({**state, "kind": "trust"})
+
+
+def test_searched_weight_is_set_and_clamped() -> None:
+    w = SearchedWeight([0.5, 0.5])
+    assert w.value().tolist() == [0.5, 0.5]
+    w.set(torch.tensor(-0.3))
+    assert w.value().tolist() == [0.0, 0.0]
+    w.set(torch.tensor([2.0, 3.0]))
+    w.end_episode()
+    assert w.value().tolist() == [2.0, 3.0]
+    restored = SearchedWeight([0.0, 0.0])
+    restored.load_state_dict(w.state_dict())
+    assert restored.value().tolist() == [2.0, 3.0]
+    with pytest.raises(CheckpointError, match="search"):
+        SearchedWeight([0.0, 0.0]).load_state_dict({**w.state_dict(), "kind": "constant"})
+
+
+# ---------------------------------------------------------------- CE's search of the weight
+
+
+def search(best_weight, iterations: int = 30, seed: int = 0) -> list[float]:
+    """CE over (one value weight, the weight on H^) where a game's lines peak where the weight on H^ is
+    ``best_weight(t)`` (clamped at 0, as the fused rollout does); the mean weight on H^ after each step."""
+    from hfrl_torch.agents.cem import CEMConfig, CrossEntropyMethod
+
+    state = {"t": 0}
+
+    def rollout(weights: torch.Tensor, seeds: torch.Tensor):
+        w = weights[:, -1].clamp(min=0.0)
+        lines = 100.0 * torch.exp(-((w - best_weight(state["t"])) ** 2) / 50.0)
+        n = weights.shape[0]
+        return lines, torch.full((n,), 10), torch.zeros(n, dtype=torch.bool)
+
+    config = CEMConfig(population=50, noise="constant", noise_value=4.0, games_per_candidate=1, eval_games=1)
+    cem = CrossEntropyMethod(
+        2, config, rollout, seed, mean=torch.tensor([0.0, 0.5]), scale=torch.tensor([1.0, 0.1])
+    )
+    out = []
+    for t in range(iterations):
+        state["t"] = t
+        cem.step()
+        out.append(float(cem.mean[-1].clamp(min=0.0)))
+    return out
+
+
+def test_search_rises_for_a_helpful_h() -> None:
+    assert search(lambda t: 3.0)[-1] == pytest.approx(3.0, abs=0.5)
+
+
+def test_search_falls_for_a_harmful_h() -> None:
+    assert search(lambda t: -5.0)[-1] == 0.0  # the best is no H^ at all: the mean goes below 0
+
+
+def test_search_follows_a_trainer_who_leaves() -> None:
+    path = search(lambda t: 3.0 if t < 20 else 0.0, iterations=45)
+    assert path[19] > 2.0 and path[-1] < 0.5
+
+
+def test_search_scale_sets_the_weight_dimension_apart() -> None:
+    from hfrl_torch.agents.cem import CEMConfig, CrossEntropyMethod
+
+    cem = CrossEntropyMethod(3, CEMConfig(), lambda w, s: (w[:, 0],), 0, scale=torch.tensor([1.0, 1.0, 0.1]))
+    assert cem.variance.tolist() == pytest.approx([100.0, 100.0, 1.0])
+    with pytest.raises(ValueError, match="scale"):
+        CrossEntropyMethod(2, CEMConfig(), lambda w, s: (w[:, 0],), 0, scale=torch.tensor([1.0, 0.0]))

@@ -1,0 +1,84 @@
+"""A trainer who leaves (``trainer.leave_after``): feedback stops there for good, in every taught loop, and
+the effort that was given is counted."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from hfrl_torch.trainers.departure import Departure
+
+
+def test_present_by_episodes_and_by_minutes() -> None:
+    episodes = torch.tensor([0, 4, 5, 9])
+    assert Departure(5).present(episodes, 0.0).tolist() == [True, True, False, False]
+    seconds = torch.tensor([0.0, 59.0, 60.0, 600.0])
+    assert Departure(1, "minutes").present(episodes, seconds).tolist() == [True, True, False, False]
+    assert Departure().present(episodes, seconds).all()
+    assert Departure(0).present(episodes, seconds).sum() == 0  # a trainer who never came
+
+
+def test_bad_departures_are_refused() -> None:
+    with pytest.raises(ValueError, match="hours"):
+        Departure(3, "hours")
+    with pytest.raises(ValueError, match="leave_after"):
+        Departure(-1)
+
+
+def test_keepaway_trainer_leaves_after_its_episodes(tmp_path, run_learner) -> None:
+    """No event is given on a field once its learner has finished ``leave_after`` episodes; the effort rows
+    say so, and the weight goes on being chosen (the bandit) after the trainer has gone."""
+    learner, final = run_learner(
+        tmp_path,
+        "domain=keepaway",
+        "fusion=linear",
+        "fusion.weight=adaptive",
+        "agent.learners=2",
+        "agent.hours=0",
+        "agent.episodes=8",
+        "agent.log_episodes=2",
+        "trainer.leave_after=3",
+    )
+    effort = learner.effort
+    gone = effort[:, 1] >= 3
+    assert effort[~gone, 2].sum() > 0 and effort[gone, 2].sum() == 0
+    assert effort[gone, 3].sum() == 0 and bool((effort[~gone, 3] > 0).all())
+    assert final["feedback/trainer_present_share"] == 0.0
+    assert final["feedback/trainer_minutes_per_learner"] == pytest.approx(
+        float(effort[:, 3].sum()) / 60.0 / 2
+    )
+
+
+def test_tetris_trainer_leaves_after_its_games(tmp_path, run_learner) -> None:
+    learner, _ = run_learner(
+        tmp_path,
+        "agent=pg",
+        "fusion=linear",
+        "trainer=oracle",
+        "agent.learners=2",
+        "agent.games=5",
+        "domain.width=6",
+        "domain.height=6",
+        "trainer.leave_after=2",
+    )
+    assert bool((learner.given[:, :2, 0].sum(1) > 0).all()) and learner.given[:, 2:].sum() == 0
+    assert bool((learner.watched[:, :2] > 0).all()) and learner.watched[:, 2:].sum() == 0
+
+
+def test_ce_trainer_leaves_after_its_iterations(tmp_path, run_learner) -> None:
+    learner, _ = run_learner(
+        tmp_path,
+        "agent=cem",
+        "fusion=linear",
+        "fusion.weight=adaptive",
+        "trainer=oracle",
+        "agent.iterations=3",
+        "agent.population=10",
+        "agent.eval_games=2",
+        "domain.width=6",
+        "domain.height=6",
+        "trainer.leave_after=1",
+    )
+    given = [r["feedback/given"] for r in learner.history]
+    assert given[0] > 0 and given[1:] == [0.0, 0.0]
+    assert [r["feedback/trainer_minutes"] > 0 for r in learner.history] == [True, False, False]
