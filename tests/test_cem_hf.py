@@ -50,9 +50,12 @@ def _curves(run_dir: Path) -> list[dict]:
     return [{k: v for k, v in r.items() if not k.startswith("time/")} for r in rows]
 
 
-@pytest.mark.parametrize("fusion", ["linear", "control_sharing"])
+@pytest.mark.parametrize(
+    "fusion",
+    ["linear", "control_sharing", "linear fusion.weight=adaptive", "linear fusion.weight=bandit"],
+)
 def test_resumed_run_equals_an_uninterrupted_one(tmp_path, fusion):
-    over = ["fusion=" + fusion, "trainer=oracle", "seed=3"]
+    over = ["fusion=" + fusion.split()[0], *fusion.split()[1:], "trainer=oracle", "seed=3"]
     whole, part = tmp_path / "whole", tmp_path / "part"
     whole.mkdir()
     part.mkdir()

@@ -238,8 +238,10 @@ def test_pg_with_a_simulated_trainer_learns_h_and_updates_trust_per_learner(tmp_
     assert len(events) > 10 and '"simulated:oracle"' in events[-1]
 
 
-def test_a_resumed_taught_run_equals_an_uninterrupted_one(tmp_path, run_learner):
+@pytest.mark.parametrize("weight", ["trust", "adaptive"])
+def test_a_resumed_taught_run_equals_an_uninterrupted_one(tmp_path, run_learner, weight):
     over = [*SMALL, "fusion=linear", "trainer=oracle", "agent.learners=2", "agent.eval_games=0", "seed=1"]
+    over += [f"fusion.weight={weight}"]
     over += ["domain.max_pieces=60"]
     whole, _ = run_learner(tmp_path / "whole", *over, "agent.games=6")
     _, stopped = run_learner(tmp_path / "part", *over, "agent.games=6", stop_after=2)

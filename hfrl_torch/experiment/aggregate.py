@@ -382,6 +382,30 @@ def report(
     return rows, "\n".join(md)
 
 
+def verdicts(rows: list[dict[str, object]], reference: str, level: float = 0.05) -> list[str]:
+    """One plain sentence per condition: its final value against the reference's, and whether the
+    difference is significant at ``level`` (the report's paired or unpaired permutation test)."""
+    ref = next((r for r in rows if r["condition"] == reference), None)
+    if ref is None:
+        return []
+    out = []
+    for r in rows:
+        if r is ref or r["p_value"] == "":
+            continue
+        p = float(str(r["p_value"]))
+        diff = float(str(r["difference"]))
+        if p < level:
+            word = "higher than" if diff > 0 else "lower than"
+            verdict = f"significantly {word} the reference"
+        else:
+            verdict = "not significantly different from the reference"
+        out.append(
+            f"{r['condition']}: {float(str(r['mean'])):.2f} against {float(str(ref['mean'])):.2f} for "
+            f"{reference} ({diff:+.2f}, p = {p:.3f}, {r['runs']} seeds): {verdict} at {level:g}"
+        )
+    return out
+
+
 def _has_effort(group: Group) -> bool:
     return bool(group.y_key) and all("feedback_events" in r.rows[-1] for r in group.runs)
 
@@ -487,7 +511,8 @@ def plot(groups: list[Group], path: Path) -> None:
 
 
 def plot_effort(groups: list[Group], path: Path) -> None:
-    """Performance against feedback events given (mean over seeds), and the weight on H^ along the curve."""
+    """Performance against feedback events given and against trainer minutes (means over seeds), and the
+    weight on H^ along the curve."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -495,24 +520,30 @@ def plot_effort(groups: list[Group], path: Path) -> None:
 
     drawn = [g for g in groups if _has_effort(g)]
     colours = plt.get_cmap("tab10" if len(drawn) <= 10 else "tab20")
-    fig, (left, right) = plt.subplots(1, 2, figsize=(11, 4.2), dpi=110)
+    fig, (events_ax, minutes_ax, weight_ax) = plt.subplots(1, 3, figsize=(15, 4.2), dpi=110)
     for i, g in enumerate(drawn):
         n = min(len(r.rows) for r in g.runs)
         colour = colours(i % colours.N)
-        events = [sum(float(r.rows[k]["feedback_events"]) for r in g.runs) / len(g.runs) for k in range(n)]
         _, mean, _, _ = _curve(g)
-        left.plot(events, mean[:n], color=colour, label=f"{g.label} (n={len(g.runs)})")
-        if all("weight" in r.rows[0] for r in g.runs):
+
+        def mean_of(key: str, g: Group = g, n: int = n) -> list[float]:
+            return [sum(float(r.rows[k][key]) for r in g.runs) / len(g.runs) for k in range(n)]
+
+        label = f"{g.label} (n={len(g.runs)})"
+        events_ax.plot(mean_of("feedback_events"), mean[:n], color=colour, label=label)
+        minutes_ax.plot(mean_of("trainer_minutes"), mean[:n], color=colour, label=label)
+        if all("weight" in r.rows[k] for r in g.runs for k in range(n)):
             xs = [float(g.runs[0].rows[k][g.x_key]) for k in range(n)]
-            weights = [sum(float(r.rows[k]["weight"]) for r in g.runs) / len(g.runs) for k in range(n)]
-            right.plot(xs, weights, color=colour, label=g.label)
-    left.set_xlabel("feedback events per learner, so far")
-    left.set_ylabel(", ".join(sorted({g.y_key for g in drawn})))
-    right.set_xlabel(", ".join(sorted({g.x_key for g in drawn})))
-    right.set_ylabel("weight on H^ (mean over learners)")
-    for ax in (left, right):
+            weight_ax.plot(xs, mean_of("weight"), color=colour, label=label)
+    y = ", ".join(sorted({g.y_key for g in drawn}))
+    events_ax.set(xlabel="feedback events per learner, so far", ylabel=y)
+    minutes_ax.set(xlabel="trainer minutes per learner, so far", ylabel=y)
+    weight_ax.set(
+        xlabel=", ".join(sorted({g.x_key for g in drawn})), ylabel="weight on H^ (mean over learners)"
+    )
+    for ax in (events_ax, minutes_ax, weight_ax):
         ax.grid(alpha=0.3)
-    left.legend(fontsize=7)
+    events_ax.legend(fontsize=7, loc="lower right")
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
@@ -560,6 +591,8 @@ def aggregate(cfg: DictConfig) -> dict[str, object]:
         plots.append("effort.png")
     _to_tensorboard(out, plots)
     print(md)
+    for line in verdicts(rows, groups[baseline].label):
+        print(line)
     return {
         "runs": len(runs),
         "missing": len(broken),
