@@ -361,7 +361,10 @@ def check_adaptive(cfg: DictConfig, weight: str) -> None:
             "action_biasing); use adaptive or bandit"
         )
     if "adaptive" not in cfg.fusion:
-        raise ConfigError(f"fusion.weight={weight} needs fusion.adaptive (arms, discount, search_std)")
+        raise ConfigError(
+            f"fusion.weight={weight} needs fusion.adaptive (arms, discount, prior_trust, prior_count, "
+            "search_std)"
+        )
     arms = OmegaConf.select(cfg, "fusion.adaptive.arms")
     values = list(arms) if OmegaConf.is_list(arms) else None
     if (
@@ -375,6 +378,8 @@ def check_adaptive(cfg: DictConfig, weight: str) -> None:
             f"fusion.adaptive.arms={arms!r} is invalid; allowed: a list of two or more different weights >= 0"
         )
     require_float(cfg, "fusion.adaptive.discount", 1e-6, 1.0)
+    require_float(cfg, "fusion.adaptive.prior_trust", 0.0)
+    require_float(cfg, "fusion.adaptive.prior_count", 1e-6)
     require_float(cfg, "fusion.adaptive.search_std", 1e-6)
     require_float(cfg, "fusion.initial_trust", 0.0)  # the search's first mean weight
 

@@ -304,7 +304,14 @@ def make_weight_schedule(cfg: DictConfig, learners: int = 1) -> WeightSchedule:
         if weight_estimator(cfg) == "search":
             return SearchedWeight([float(f.initial_trust)] * learners)
         a = f.adaptive
-        return BanditWeight(learners, list(a.arms), float(a.discount), seed=2 * int(cfg.seed) + 7)
+        return BanditWeight(
+            learners,
+            list(a.arms),
+            float(a.discount),
+            prior_count=float(a.prior_count),
+            prior_trust=float(a.prior_trust),
+            seed=2 * int(cfg.seed) + 7,
+        )
     return ConstantWeight([float(f.weight)] * learners)
 
 

@@ -8,10 +8,14 @@ makes arms' noise comparable. Evidence is discounted by ``discount`` per episode
 Kalyani 2017, "Taming non-stationary bandits"), so arms not played lately grow uncertain and are tried again:
 the weight follows a trainer who leaves (H^ frozen while Q improves) or an H^ that gets better or worse.
 
-The model of each arm's mean is Gaussian, shrunk towards the learner's pooled mean by ``prior_count``
-pseudo-episodes, with the learner's pooled residual variance (a known-variance Thompson sampler with an
-empirical-Bayes prior). The first episode plays the highest weight: a learner trusts its teacher until the
-returns say otherwise, as the thesis's agents do.
+The model of each arm's mean is Gaussian, shrunk towards a prior by ``prior_count`` pseudo-episodes, with the
+learner's pooled residual variance (a known-variance Thompson sampler with an empirical-Bayes prior). The
+prior is the learner's pooled mean, raised by ``prior_trust`` for the highest weight: a learner trusts its
+teacher until the returns say otherwise, as the thesis's agents do (their trust starts from eq. 4.3), and
+the first episode plays the highest weight. The trust is worth more than a tie-break: TAMER's H^ learns
+best from feedback on its own choices, so an H^ that is not followed while the trainer is there is taught
+on another policy's states and looks worse than it would be. Evidence decays, the prior does not, so an arm
+long unplayed returns to its prior and is tried again.
 """
 
 from __future__ import annotations
@@ -39,7 +43,9 @@ class BanditWeight(WeightSchedule):
     :param learners: L, each with its own evidence and draws.
     :param arms: the weights to choose from (>= 0, at least two).
     :param discount: evidence kept per episode of the learner, in (0, 1] (1: stationary).
-    :param prior_count: pseudo-episodes of the pooled mean each arm starts with (> 0).
+    :param prior_count: pseudo-episodes of the prior each arm's mean is shrunk towards (> 0).
+    :param prior_trust: how much better (in score, log(1 + performance)) the highest weight is believed to be
+        before any evidence (>= 0).
     :param seed: seed of the draws.
     """
 
@@ -50,7 +56,8 @@ class BanditWeight(WeightSchedule):
         learners: int,
         arms: Sequence[float] | Tensor = DEFAULT_ARMS,
         discount: float = 0.99,
-        prior_count: float = 1.0,
+        prior_count: float = 4.0,
+        prior_trust: float = 0.5,
         seed: int = 0,
     ) -> None:
         super().__init__(learners)
@@ -61,8 +68,11 @@ class BanditWeight(WeightSchedule):
             raise ValueError(f"bandit discount must be in (0, 1], got {discount!r}")
         if not (math.isfinite(float(prior_count)) and float(prior_count) > 0.0):
             raise ValueError(f"bandit prior_count must be > 0, got {prior_count!r}")
+        if not (math.isfinite(float(prior_trust)) and float(prior_trust) >= 0.0):
+            raise ValueError(f"bandit prior_trust must be >= 0, got {prior_trust!r}")
         self.arms = grid
         self.discount, self.prior_count = float(discount), float(prior_count)
+        self.prior_trust = float(prior_trust)
         shape = (self.learners, grid.numel())
         self.count = torch.zeros(shape, dtype=torch.float64)  # discounted episodes per arm
         self.total = torch.zeros(shape, dtype=torch.float64)  # discounted sum of scores
@@ -86,8 +96,9 @@ class BanditWeight(WeightSchedule):
         arm_mean = self.total / self.count.clamp(min=1e-12)
         residual = (self.square - self.count * arm_mean**2).clamp(min=0.0).sum(-1, keepdim=True)
         variance = ((residual + PRIOR_VARIANCE) / (n + 1.0)).clamp(min=MIN_VARIANCE)
+        prior = pooled + self.prior_trust * (self.arms == self.arms.max()).to(torch.float64)
         weight = self.count + self.prior_count
-        mean = (self.total + self.prior_count * pooled) / weight
+        mean = (self.total + self.prior_count * prior) / weight
         return mean, variance / weight
 
     def end_episode(
@@ -134,6 +145,7 @@ class BanditWeight(WeightSchedule):
             "arms": self.arms.tolist(),
             "discount": self.discount,
             "prior_count": self.prior_count,
+            "prior_trust": self.prior_trust,
             "count": self.count.clone(),
             "total": self.total.clone(),
             "square": self.square.clone(),
@@ -149,6 +161,7 @@ class BanditWeight(WeightSchedule):
             arm = state["arm"].to(torch.int64)
             self.generator.set_state(state["generator"])
             discount, prior_count = float(state["discount"]), float(state["prior_count"])
+            prior_trust = float(state["prior_trust"])
         except (KeyError, TypeError, AttributeError, RuntimeError, ValueError) as e:
             raise CheckpointError(f"bad BanditWeight state ({e!r})") from None
         if arms.tolist() != self.arms.tolist():
@@ -161,6 +174,7 @@ class BanditWeight(WeightSchedule):
             raise CheckpointError(f"bad BanditWeight state: arm indices {arm.tolist()} out of range")
         self.count, self.total, self.square = (s.clone() for s in stats)
         self.arm, self.discount, self.prior_count = arm.clone(), discount, prior_count
+        self.prior_trust = prior_trust
 
     def __repr__(self) -> str:
         return f"BanditWeight(arms={self.arms.tolist()}, discount={self.discount}, learners={self.learners})"
