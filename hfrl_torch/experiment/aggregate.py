@@ -67,13 +67,34 @@ class Group:
         return [int(r.config.get("seed", i)) for i, r in enumerate(self.runs)]
 
     last: int = 1
+    window: tuple[float, float] | None = None
 
     def finals(self) -> dict[int, float]:
-        """Per seed, the mean of the curve's last ``last`` points (1: the final value)."""
-        return {
-            s: sum(float(row[self.y_key]) for row in r.rows[-self.last :]) / len(r.rows[-self.last :])
-            for s, r in zip(self.seeds, self.runs, strict=True)
-        }
+        """Per seed, the mean of the curve's last ``last`` points (1: the final value), or with ``window``
+        (lo, hi) the mean of its points with lo < x <= hi."""
+        out = {}
+        for s, r in zip(self.seeds, self.runs, strict=True):
+            if self.window is None:
+                rows = r.rows[-self.last :]
+            else:
+                lo, hi = self.window
+                rows = [row for row in r.rows if lo < float(row[self.x_key]) <= hi]
+                if not rows:
+                    raise ConfigError(
+                        f"window={list(self.window)} holds no point of {r.path} (its {self.x_key} runs "
+                        f"{r.rows[0][self.x_key]}..{r.rows[-1][self.x_key]})"
+                    )
+            out[s] = sum(float(row[self.y_key]) for row in rows) / len(rows)
+        return out
+
+    @property
+    def measured(self) -> str:
+        """What :meth:`finals` measures, in words."""
+        if self.window is not None:
+            lo, hi = self.window
+            return f"{self.y_key}, mean over {self.x_key} {lo:g} < x <= {hi:g}"
+        last = f" (mean of the last {self.last})" if self.last > 1 else ""
+        return f"{self.y_key} at {self.x_key} {self.runs[0].rows[-1][self.x_key]}{last}"
 
     def reach(self, level: float) -> dict[int, float]:
         """Per seed, the first x at which the curve reaches ``level`` (the last x + 1 if it never does)."""
@@ -370,8 +391,7 @@ def report(
         )
         ref_mark = " (reference)" if g is ref else ""
         md.append(
-            f"| {g.label}{ref_mark} | {len(g.runs)} | {g.y_key} at {g.x_key} {g.runs[0].rows[-1][g.x_key]}"
-            f"{f' (mean of the last {g.last})' if g.last > 1 else ''} "
+            f"| {g.label}{ref_mark} | {len(g.runs)} | {g.measured} "
             f"| {s['mean']:.2f} | {s['ci95_low']:.2f} .. {s['ci95_high']:.2f} | {diff} "
             f"| {p}{' ' + kind if kind else ''} |"
         )
@@ -560,8 +580,22 @@ def aggregate(cfg: DictConfig) -> dict[str, object]:
     last = cfg.get("last") or 1
     if isinstance(last, bool) or not isinstance(last, int) or last < 1:
         raise ConfigError(f"last={last!r} is invalid: must be an integer >= 1 (points averaged at the end)")
+    window = cfg.get("window")
+    if window is not None:
+        bounds = list(window) if OmegaConf.is_list(window) else None
+        if (
+            bounds is None
+            or len(bounds) != 2
+            or not all(isinstance(b, int | float) and not isinstance(b, bool) for b in bounds)
+            or not bounds[0] < bounds[1]
+        ):
+            raise ConfigError(
+                f"window={window!r} is invalid: must be [from, to] with from < to (the points averaged, "
+                "from < x <= to)"
+            )
+        window = (float(bounds[0]), float(bounds[1]))
     for g in groups:
-        g.last = last
+        g.last, g.window = last, window
     labels = [g.label for g in groups]
     base = cfg.get("baseline")
     if base is None:

@@ -25,6 +25,7 @@ from hfrl_torch.common.logger import BACKENDS
 from hfrl_torch.common.validation import require_bool, require_choice, require_float, require_int
 from hfrl_torch.envs.keepaway.params import KERNELS, PRESETS, KeepawayConfig
 from hfrl_torch.envs.tetris.env import ENGINES
+from hfrl_torch.fusion.schedules import ADAPTIVE_WEIGHTS
 from hfrl_torch.fusion.schemes import FUSIONS, OPTIONS
 from hfrl_torch.interactive.messages import MAX_SPEED, MIN_SPEED
 from hfrl_torch.models.tile_coding import MAX_SIZE
@@ -39,7 +40,6 @@ FEATURE_SETS = ("bt", "knox", "dellacherie", "dt")
 PG_FUSIONS = ("none", "linear", "annealed")
 KEY_NAMES = ("good", "bad", "pause", "presence")
 NORMALISE = ("true", "false", "spread", "null")
-ADAPTIVE_WEIGHTS = ("adaptive", "bandit", "search")
 WEIGHTS = ("trust", *ADAPTIVE_WEIGHTS)
 MAX_TABLE_GIB = 16.0  # refuse configs whose keepaway weight tables alone would need more memory than this
 RESUMABLE = (
@@ -354,30 +354,33 @@ def check_adaptive(cfg: DictConfig, weight: str) -> None:
     """``fusion.adaptive`` for ``fusion.weight`` adaptive, bandit or search: the bandit's arms and discount,
     CE's search of the weight (a decision-level rule only: a shaped fitness grows with its weight)."""
     name = cfg.fusion.name
-    if weight == "search" and (cfg.agent.name != "cem" or OPTIONS[name].reward != "none"):
+    if weight in ("search", "paired") and (cfg.agent.name != "cem" or OPTIONS[name].reward != "none"):
         raise ConfigError(
-            f"fusion.weight=search with agent={cfg.agent.name} fusion={name} is invalid: CE searches the "
-            "weight of a decision-level rule (agent=cem, fusion=linear, exponential, control_sharing, "
-            "action_biasing); use adaptive or bandit"
+            f"fusion.weight={weight} with agent={cfg.agent.name} fusion={name} is invalid: it is CE's, for a "
+            "decision-level rule (agent=cem, fusion=linear, exponential, control_sharing, action_biasing); "
+            "use adaptive or bandit"
         )
     if "adaptive" not in cfg.fusion:
         raise ConfigError(
             f"fusion.weight={weight} needs fusion.adaptive (arms, discount, prior_trust, prior_count, "
-            "search_std)"
+            "paired_arms, paired_discount, search_std)"
         )
-    arms = OmegaConf.select(cfg, "fusion.adaptive.arms")
-    values = list(arms) if OmegaConf.is_list(arms) else None
-    if (
-        values is None
-        or len(values) < 2
-        or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in values)
-        or not all(math.isfinite(v) and v >= 0 for v in values)
-        or len(set(values)) != len(values)
-    ):
-        raise ConfigError(
-            f"fusion.adaptive.arms={arms!r} is invalid; allowed: a list of two or more different weights >= 0"
-        )
+    for key in ("arms", "paired_arms"):
+        arms = OmegaConf.select(cfg, f"fusion.adaptive.{key}")
+        values = list(arms) if OmegaConf.is_list(arms) else None
+        if (
+            values is None
+            or len(values) < 2
+            or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in values)
+            or not all(math.isfinite(v) and v >= 0 for v in values)
+            or len(set(values)) != len(values)
+        ):
+            raise ConfigError(
+                f"fusion.adaptive.{key}={arms!r} is invalid; allowed: a list of two or more different "
+                "weights >= 0"
+            )
     require_float(cfg, "fusion.adaptive.discount", 1e-6, 1.0)
+    require_float(cfg, "fusion.adaptive.paired_discount", 0.0, 0.999)
     require_float(cfg, "fusion.adaptive.prior_trust", 0.0)
     require_float(cfg, "fusion.adaptive.prior_count", 1e-6)
     require_float(cfg, "fusion.adaptive.search_std", 1e-6)

@@ -26,7 +26,9 @@ from hfrl_torch.feedback.credit import CreditModel, GammaDelay, PreviousStep, Un
 from hfrl_torch.feedback.log import FeedbackLog
 from hfrl_torch.fusion.bandit import BanditWeight
 from hfrl_torch.fusion.fusion import Fusion
+from hfrl_torch.fusion.paired import PairedWeight
 from hfrl_torch.fusion.schedules import (
+    ADAPTIVE_WEIGHTS,
     AnnealedWeight,
     ConstantWeight,
     SearchedWeight,
@@ -300,10 +302,13 @@ def make_weight_schedule(cfg: DictConfig, learners: int = 1) -> WeightSchedule:
         return AnnealedWeight([float(f.weight)] * learners, float(f.factor))
     if f.weight == "trust":
         return TrustWeight.from_initial(float(f.initial_trust), learners)
-    if f.weight in ("adaptive", "bandit", "search"):
-        if weight_estimator(cfg) == "search":
-            return SearchedWeight([float(f.initial_trust)] * learners)
+    if f.weight in ADAPTIVE_WEIGHTS:
         a = f.adaptive
+        estimator = weight_estimator(cfg)
+        if estimator == "search":
+            return SearchedWeight([float(f.initial_trust)] * learners)
+        if estimator == "paired":
+            return PairedWeight(learners, list(a.paired_arms), float(a.paired_discount))
         return BanditWeight(
             learners,
             list(a.arms),
@@ -316,13 +321,14 @@ def make_weight_schedule(cfg: DictConfig, learners: int = 1) -> WeightSchedule:
 
 
 def weight_estimator(cfg: DictConfig) -> str:
-    """What ``fusion.weight=adaptive`` means for this learner: ``search`` where CE can select the weight
-    with its own search (a decision-level rule), else ``bandit``; ``bandit`` and ``search`` name one."""
+    """What ``fusion.weight=adaptive`` means for this learner: ``paired`` for CE with a decision-level rule
+    (the weights compared on the same test games), else ``bandit``; ``bandit``, ``paired`` and ``search``
+    name one."""
     w = cfg.fusion.weight
     if w != "adaptive":
         return str(w)
-    searchable = cfg.agent.name == "cem" and OPTIONS[cfg.fusion.name].reward == "none"
-    return "search" if searchable else "bandit"
+    comparable = cfg.agent.name == "cem" and OPTIONS[cfg.fusion.name].reward == "none"
+    return "paired" if comparable else "bandit"
 
 
 def fusion_scaling(cfg: DictConfig) -> str:

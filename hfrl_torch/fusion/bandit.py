@@ -10,12 +10,14 @@ the weight follows a trainer who leaves (H^ frozen while Q improves) or an H^ th
 
 The model of each arm's mean is Gaussian, shrunk towards a prior by ``prior_count`` pseudo-episodes, with the
 learner's pooled residual variance (a known-variance Thompson sampler with an empirical-Bayes prior). The
-prior is the learner's pooled mean, raised by ``prior_trust`` for the highest weight: a learner trusts its
-teacher until the returns say otherwise, as the thesis's agents do (their trust starts from eq. 4.3), and
-the first episode plays the highest weight. The trust is worth more than a tie-break: TAMER's H^ learns
-best from feedback on its own choices, so an H^ that is not followed while the trainer is there is taught
-on another policy's states and looks worse than it would be. Evidence decays, the prior does not, so an arm
-long unplayed returns to its prior and is tried again.
+prior is the learner's pooled mean, raised by ``prior_trust`` for the highest weight while the trainer
+teaches (gave feedback in the learner's last episode): a learner trusts its teacher until the returns say
+otherwise, as the thesis's agents do (their trust starts from eq. 4.3), and the first episode plays the
+highest weight. The trust is worth more than a tie-break: TAMER's H^ learns best from feedback on its own
+choices, so an H^ that is not followed while the trainer is there is taught on another policy's states and
+looks worse than it would be. Once the trainer is gone that reason is gone too, and the prior is the pooled
+mean alone. Evidence decays, the prior does not, so an arm long unplayed returns to its prior and is tried
+again.
 """
 
 from __future__ import annotations
@@ -78,6 +80,7 @@ class BanditWeight(WeightSchedule):
         self.total = torch.zeros(shape, dtype=torch.float64)  # discounted sum of scores
         self.square = torch.zeros(shape, dtype=torch.float64)  # discounted sum of squared scores
         self.arm = torch.full((self.learners,), int(grid.argmax()), dtype=torch.int64)
+        self.teaching = torch.ones(self.learners, dtype=torch.bool)  # the trainer taught the last episode
         self.generator = torch.Generator().manual_seed(int(seed))
 
     def _parameters_at(self, episode: Tensor) -> Tensor:
@@ -96,10 +99,18 @@ class BanditWeight(WeightSchedule):
         arm_mean = self.total / self.count.clamp(min=1e-12)
         residual = (self.square - self.count * arm_mean**2).clamp(min=0.0).sum(-1, keepdim=True)
         variance = ((residual + PRIOR_VARIANCE) / (n + 1.0)).clamp(min=MIN_VARIANCE)
-        prior = pooled + self.prior_trust * (self.arms == self.arms.max()).to(torch.float64)
+        top = (self.arms == self.arms.max()).to(torch.float64)
+        prior = pooled + self.prior_trust * self.teaching.to(torch.float64).unsqueeze(-1) * top
         weight = self.count + self.prior_count
         mean = (self.total + self.prior_count * prior) / weight
         return mean, variance / weight
+
+    def taught(self, taught: Tensor, ended: Tensor | None = None) -> None:
+        """Whether the trainer gave feedback in the flagged learners' last episodes (the prior trusts H^ only
+        while it does)."""
+        flags = _ended(ended, self.learners)
+        t = torch.as_tensor(taught).detach().cpu().to(torch.bool).reshape(-1).expand(self.learners)
+        self.teaching = torch.where(flags, t, self.teaching)
 
     def end_episode(
         self,
@@ -150,6 +161,7 @@ class BanditWeight(WeightSchedule):
             "total": self.total.clone(),
             "square": self.square.clone(),
             "arm": self.arm.clone(),
+            "teaching": self.teaching.clone(),
             "generator": self.generator.get_state(),
         }
 
@@ -159,6 +171,7 @@ class BanditWeight(WeightSchedule):
             arms = _weights(state["arms"], "arms")
             stats = [state[k].to(torch.float64) for k in ("count", "total", "square")]
             arm = state["arm"].to(torch.int64)
+            teaching = state["teaching"].to(torch.bool)
             self.generator.set_state(state["generator"])
             discount, prior_count = float(state["discount"]), float(state["prior_count"])
             prior_trust = float(state["prior_trust"])
@@ -168,13 +181,14 @@ class BanditWeight(WeightSchedule):
             raise CheckpointError(
                 f"bad BanditWeight state: arms {arms.tolist()}, this run has {self.arms.tolist()}"
             )
-        if any(s.shape != self.count.shape for s in stats) or arm.shape != self.arm.shape:
+        same = arm.shape == teaching.shape == self.arm.shape
+        if any(s.shape != self.count.shape for s in stats) or not same:
             raise CheckpointError("bad BanditWeight state: evidence of another number of learners or arms")
         if bool(((arm < 0) | (arm >= arms.numel())).any()):
             raise CheckpointError(f"bad BanditWeight state: arm indices {arm.tolist()} out of range")
         self.count, self.total, self.square = (s.clone() for s in stats)
         self.arm, self.discount, self.prior_count = arm.clone(), discount, prior_count
-        self.prior_trust = prior_trust
+        self.prior_trust, self.teaching = prior_trust, teaching.clone()
 
     def __repr__(self) -> str:
         return f"BanditWeight(arms={self.arms.tolist()}, discount={self.discount}, learners={self.learners})"

@@ -230,11 +230,19 @@ class Fusion:
         if not self.evaluating:
             self.matches.add(learner, matches, compared)
 
-    def end_episode(self, ended: Tensor | None = None, performance: Tensor | float | None = None) -> None:
+    def end_episode(
+        self,
+        ended: Tensor | None = None,
+        performance: Tensor | float | None = None,
+        taught: Tensor | None = None,
+    ) -> None:
         """The flagged learners' episodes ended (bool [L]; None: all) with ``performance`` (lines, or hold
-        time): eq. 4.4 with their match rates for the trust factor, the episode's score for the bandit, one
-        step for the annealed weight; then their match counts start again."""
+        time) and ``taught`` (bool [L]: the trainer gave feedback in them; None: not said): eq. 4.4 with their
+        match rates for the trust factor, the episode's score for the bandit, one step for the annealed
+        weight; then their match counts start again."""
         flags = torch.ones(self.learners, dtype=torch.bool) if ended is None else ended.cpu().to(torch.bool)
+        if taught is not None:
+            self.schedule.taught(taught.cpu().to(torch.bool).reshape(-1).expand(self.learners), flags)
         perf = None
         if performance is not None:
             perf = torch.as_tensor(performance, dtype=torch.float64).reshape(-1).expand(self.learners)

@@ -26,6 +26,7 @@ from hfrl_torch.common.errors import CheckpointError
 from hfrl_torch.fusion.trust import IncrementalTrust
 
 __all__ = [
+    "ADAPTIVE_WEIGHTS",
     "AnnealedWeight",
     "ConstantWeight",
     "SearchedWeight",
@@ -35,6 +36,8 @@ __all__ = [
 ]
 
 MatchRateLike = float | None
+# fusion.weight's estimated options: adaptive (each learner's own estimator) and the estimators by name
+ADAPTIVE_WEIGHTS = ("adaptive", "bandit", "paired", "search")
 
 
 def _is_number(x: object) -> bool:
@@ -141,6 +144,10 @@ class WeightSchedule(ABC):
         decisions were compared) are what the trust factor needs; other schedules only count the episode.
         """
         self.episodes += _ended(ended, self.learners).to(torch.int64)
+
+    def taught(self, taught: Tensor, ended: Tensor | None = None) -> None:  # noqa: B027  (optional hook)
+        """Told whether the trainer gave feedback in the flagged learners' episodes that just ended (bool
+        [L]); call it before :meth:`end_episode`. Only the bandit uses it."""
 
     def state_dict(self) -> dict[str, Any]:
         """Plain Python numbers and lists for a checkpoint."""

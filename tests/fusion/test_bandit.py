@@ -182,3 +182,19 @@ def test_search_scale_sets_the_weight_dimension_apart() -> None:
     assert cem.variance.tolist() == pytest.approx([100.0, 100.0, 1.0])
     with pytest.raises(ValueError, match="scale"):
         CrossEntropyMethod(2, CEMConfig(), lambda w, s: (w[:, 0],), 0, scale=torch.tensor([1.0, 0.0]))
+
+
+def test_the_prior_trusts_h_only_while_the_trainer_teaches() -> None:
+    """Equal evidence for every arm: the highest weight is favoured while taught, not after."""
+    bandit = BanditWeight(1, seed=0)
+    for arm in range(3):
+        bandit.arm[:] = arm
+        bandit.end_episode(performance=torch.tensor([10.0]))
+    taught = bandit.probabilities()[0]
+    bandit.taught(torch.tensor([False]))
+    left = bandit.probabilities()[0]
+    assert float(taught[2]) > 0.5 and float(left[2]) < float(taught[2])
+    assert float(left.max() - left.min()) < 0.2  # no arm favoured once the evidence alone speaks
+    restored = BanditWeight(1, seed=0)
+    restored.load_state_dict(bandit.state_dict())
+    assert restored.teaching.tolist() == [False]

@@ -52,12 +52,13 @@ class FusedRollout:
         self.fusion = fusion
         self.max_pieces = max_pieces
         self.human_weights: torch.Tensor | None = None
+        self.weight: float | None = None  # set: every game at this weight on H^ instead of the fusion's
         self.last: FusedGames | None = None
 
     def __call__(self, weights: torch.Tensor, seeds: torch.Tensor) -> tuple[torch.Tensor, ...]:
         if self.human_weights is None:
             raise RuntimeError("FusedRollout.human_weights is unset: give it H^'s weights before playing")
-        weight = None
+        weight = self.weight
         if self.searches_weight:
             weights, weight = weights[:, :-1], weights[:, -1].clamp(min=0.0)
         games = play_fused(

@@ -262,8 +262,9 @@ class SarsaKeepers(Learner):
             end_rewards = after[keys.EPISODE_END_REWARDS][done_rows].reshape(-1)
             if self.taught:
                 lasted = after[keys.EPISODE_CYCLES].view(-1).double().cpu() / CYCLES_PER_SECOND
+                taught = self.episode_given > 0
                 self._book_effort(ended.cpu())
-                self.fusion.end_episode(ended.cpu(), lasted)
+                self.fusion.end_episode(ended.cpu(), lasted, taught)
                 self.trainer.new_episodes(ended.cpu())
             agent.end_episode(slots, end_rewards)
             self.records.finish(ended, after[keys.EPISODE_CYCLES])

@@ -193,7 +193,10 @@ class CEMLearner(Learner):
         if self.searches_weight:
             self.fusion.schedule.set(self.cem.mean[-1])
             metrics["fusion/search_std"] = float(self.cem.variance[-1].sqrt())
-        eval_lines = self.cem.evaluate_mean()
+        if self.taught and self.fusion.schedule.kind == "paired":
+            eval_lines = self.compare_weights(metrics)
+        else:
+            eval_lines = self.cem.evaluate_mean()
         ev = summarize(eval_lines, floor=0.0)
         elapsed = time.perf_counter() - t0
         metrics.update(
@@ -209,7 +212,7 @@ class CEMLearner(Learner):
             games = self.rollout.last
             self.fusion.count_matches(torch.zeros_like(games.matches), games.matches, games.compared)
             m = float(self.fusion.matches.rates()[0])
-            self.fusion.end_episode(performance=ev["mean"])
+            self.fusion.end_episode(performance=ev["mean"], taught=torch.tensor([watched["given"] > 0]))
             metrics.update(
                 {
                     "episode/env_return": watched["env_return"],
@@ -237,6 +240,28 @@ class CEMLearner(Learner):
             )
         step = self.cem.iteration
         return [Point({"iteration": step, **metrics}, step)]
+
+    def compare_weights(self, metrics: dict[str, float]) -> torch.Tensor:
+        """``fusion.weight=adaptive``: the mean policy's test games at every paired arm, on the same games;
+        the next iteration plays at the best. Returns the lines at this iteration's weight (the curve), whose
+        games also give the match count."""
+        schedule = self.fusion.schedule
+        now = int(schedule.arm[0])
+        lines, games = [], None
+        for k, w in enumerate(schedule.arms.tolist()):
+            self.rollout.weight = w
+            lines.append(self.cem.evaluate_mean())
+            if k == now:
+                games, capped = self.rollout.last, self.cem.last_eval_capped
+                pieces = self.cem.last_eval_pieces
+        self.rollout.weight = None
+        self.rollout.last, self.cem.last_eval_capped, self.cem.last_eval_pieces = games, capped, pieces
+        table = torch.stack(lines).to(torch.float64)
+        nxt = int(schedule.compare(table.unsqueeze(0))[0])
+        for w, row in zip(schedule.arms.tolist(), table, strict=True):
+            metrics[f"fusion/paired_lines_w{w:g}"] = float(row.mean())
+        metrics["fusion/paired_next_weight"] = float(schedule.arms[nxt])
+        return lines[now]
 
     def watch_game(self, game_seed: int, episode: int) -> dict[str, float]:
         """The trainer watches the fused mean policy play one game; H^ learns from every event; its totals.

@@ -85,7 +85,8 @@ class PolicyGradientLearner(TetrisGames):
         if self.trainer is not None:
             rows = done.nonzero().flatten()
             self.match_rate[rows, self.played[rows]] = self.fusion.matches.rates()[rows]
-            self.fusion.end_episode(done, game_lines.to(torch.float64))
+            taught = self.given[torch.arange(self.learners), self.played.clamp(max=self.games - 1), 0] > 0
+            self.fusion.end_episode(done, game_lines.to(torch.float64), taught)
 
     def game_metrics(self, g: int) -> dict[str, float]:
         metrics = {"train/pieces_per_game": float(self.pieces[:, g].double().mean())}
