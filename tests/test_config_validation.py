@@ -58,7 +58,7 @@ def test_defaults_are_valid():
         ),
         (
             "fusion=linear trainer=oracle fusion.weight=much",
-            "fusion.weight='much' is invalid; allowed: trust, adaptive, bandit, search, or a number",
+            "fusion.weight='much' is invalid; allowed: trust, adaptive, bandit, paired, search, or a number",
         ),
         (
             "fusion=linear trainer=oracle fusion.weight=adaptive fusion.adaptive.arms=[1.0]",
@@ -74,7 +74,7 @@ def test_defaults_are_valid():
         ),
         (
             "agent=pg fusion=linear trainer=oracle fusion.weight=search",
-            "fusion.weight=search with agent=pg fusion=linear is invalid: CE searches the weight",
+            "fusion.weight=search with agent=pg fusion=linear is invalid: it is CE's",
         ),
         (
             "fusion=reward_shaping trainer=oracle fusion.weight=search",
@@ -216,10 +216,12 @@ def test_tamer_and_trainer_bad_values(overrides, message):
 def test_adaptive_weight_is_each_learners_own_estimator():
     from hfrl_torch.experiment.factories import make_weight_schedule, weight_estimator
     from hfrl_torch.fusion.bandit import BanditWeight
+    from hfrl_torch.fusion.paired import PairedWeight
     from hfrl_torch.fusion.schedules import SearchedWeight
 
     for overrides, kind, cls in (
-        (["fusion=linear"], "search", SearchedWeight),  # CE selects the weight with its own search
+        (["fusion=linear"], "paired", PairedWeight),  # CE compares weights on the same test games
+        (["fusion=linear", "fusion.weight=search"], "search", SearchedWeight),  # measured, kept as an option
         (["fusion=reward_shaping"], "bandit", BanditWeight),  # a shaped fitness would select a large weight
         (["agent=pg", "fusion=linear"], "bandit", BanditWeight),
         (["domain=keepaway", "fusion=exponential"], "bandit", BanditWeight),

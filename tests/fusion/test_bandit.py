@@ -8,6 +8,7 @@ import torch
 
 from hfrl_torch.common.errors import CheckpointError
 from hfrl_torch.fusion.bandit import DEFAULT_ARMS, BanditWeight
+from hfrl_torch.fusion.paired import PairedWeight
 from hfrl_torch.fusion.schedules import SearchedWeight
 
 ARMS = DEFAULT_ARMS  # (0, 1, 16): no H^, an equal say, H^ decides
@@ -198,3 +199,47 @@ def test_the_prior_trusts_h_only_while_the_trainer_teaches() -> None:
     restored = BanditWeight(1, seed=0)
     restored.load_state_dict(bandit.state_dict())
     assert restored.teaching.tolist() == [False]
+
+
+# ------------------------------------------------------- CE's paired comparison of weights
+
+
+def compare(paired: PairedWeight, iterations: int, lines_at, seed: int = 0) -> list[float]:
+    """``iterations`` comparisons where the test games at weight w score ``lines_at(w, t)`` times the games'
+    own luck (shared by every weight: the same games); the weight played after each."""
+    g = torch.Generator().manual_seed(seed)
+    played = []
+    for t in range(iterations):
+        luck = torch.exp(0.8 * torch.randn(30, generator=g, dtype=torch.float64))  # one draw per game
+        table = torch.stack(
+            [lines_at(float(w), t) * luck * (1 + 0.05 * torch.randn(30, generator=g)) for w in paired.arms]
+        )
+        paired.compare(table)
+        played.append(float(paired.value()[0]))
+    return played
+
+
+def test_paired_rises_for_a_helpful_h() -> None:
+    assert compare(PairedWeight(1, first=0), 5, lambda w, t: 20.0 + 30.0 * w)[-1] == 1.0
+
+
+def test_paired_falls_for_a_harmful_h() -> None:
+    assert compare(PairedWeight(1), 5, lambda w, t: 40.0 - 30.0 * w)[-1] == 0.0
+
+
+def test_paired_follows_a_trainer_who_leaves() -> None:
+    """H^ helps while R is young; R alone is best once it has learned: the weight goes to 0."""
+    played = compare(PairedWeight(1), 20, lambda w, t: 20.0 + 30.0 * w if t < 8 else 200.0 - 60.0 * w)
+    assert played[7] == 1.0 and played[-1] == 0.0
+
+
+def test_paired_state_round_trips() -> None:
+    a = PairedWeight(1)
+    compare(a, 3, lambda w, t: 10.0 + w)
+    b = PairedWeight(1)
+    b.load_state_dict(a.state_dict())
+    assert torch.equal(a.scores, b.scores) and a.value().tolist() == b.value().tolist()
+    with pytest.raises(CheckpointError, match="arms"):
+        PairedWeight(1, (0.0, 2.0)).load_state_dict(a.state_dict())
+    with pytest.raises(ValueError, match="discount"):
+        PairedWeight(1, discount=1.0)
