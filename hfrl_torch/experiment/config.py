@@ -323,7 +323,14 @@ def check_human(cfg: DictConfig, model: str) -> None:
 def check_fusion(cfg: DictConfig) -> None:
     """``fusion``: the scheme, its weight (``trust``, ``adaptive``, a number >= 0), annealing, the scale."""
     name = require_choice(cfg, "fusion.name", FUSIONS)
-    if name in ("none", "human_only"):
+    if name in ("none", "human_only"):  # the weight is unused; still one of the allowed kinds (sweeps set it)
+        weight = OmegaConf.select(cfg, "fusion.weight", default="trust")
+        if isinstance(weight, str) and weight not in WEIGHTS:
+            raise ConfigError(
+                f"fusion.weight={weight!r} is invalid; allowed: {', '.join(WEIGHTS)}, or a number >= 0"
+            )
+        if not isinstance(weight, str):
+            require_float(cfg, "fusion.weight", 0.0)
         return
     if name == "annealed":
         require_float(cfg, "fusion.weight", 0.0)
