@@ -1,4 +1,5 @@
-# make train: set up .venv and train the default agent; make test: set up and run lint + tests.
+# make train: set up .venv and run the mission (learners taught by a simulated trainer and the game at once,
+# against the game alone; a few minutes); make test: set up and run lint + tests.
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
@@ -12,8 +13,11 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet -e ".[test]"
 	touch $(STAMP)
 
+MISSION ?= multirun/mission/$(shell date +%Y-%m-%d_%H-%M-%S)
+
 train: $(STAMP)
-	$(PY) train.py
+	$(PY) train.py -m +experiment=mission hydra.sweep.dir=$(MISSION)
+	$(PY) evaluate.py runs=$(MISSION) last=20
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
