@@ -7,6 +7,10 @@ from collections.abc import Iterator
 import numba
 import pytest
 import torch
+from hypothesis import settings
+
+settings.register_profile("deterministic", derandomize=True, database=None, print_blob=True)
+settings.load_profile("deterministic")
 
 
 @pytest.fixture(scope="module")
