@@ -23,8 +23,10 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 
+# The suite on both cores (pytest-xdist), then the latency and browser tests alone.
 test: lint
-	$(VENV)/bin/pytest -q
+	$(VENV)/bin/pytest -q -n 2 --dist worksteal -m "not serial"
+	$(VENV)/bin/pytest -q -m serial
 
 bench: $(STAMP)
 	$(PY) -m pip install --quiet -e ".[test,bench]"

@@ -12,6 +12,18 @@ from hypothesis import settings
 settings.register_profile("deterministic", derandomize=True, database=None, print_blob=True)
 settings.load_profile("deterministic")
 
+# Tests that assert on wall-clock latency (a stop within 2 s, a press flashed in time) or drive a browser:
+# `make test` runs them alone after the rest, which runs on both cores (pytest-xdist).
+SERIAL_DIRS = {"interactive"}
+SERIAL_FILES = {"test_events.py"}
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Mark the latency and browser tests ``serial``."""
+    for item in items:
+        if SERIAL_DIRS & set(item.path.parts) or item.path.name in SERIAL_FILES:
+            item.add_marker(pytest.mark.serial)
+
 
 @pytest.fixture(scope="module")
 def one_thread() -> Iterator[None]:
