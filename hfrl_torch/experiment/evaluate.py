@@ -175,11 +175,18 @@ KEEPAWAY_POLICIES = ("hand", "random", "hold")  # besides a keepaway run directo
 def keepaway_config(cfg: DictConfig):
     """The simulator's ``KeepawayConfig`` from ``domain`` (checked, one-line errors)."""
     from hfrl_torch.envs.keepaway import PRESETS, KeepawayConfig
+    from hfrl_torch.envs.keepaway.params import DECISION_TIMINGS, HOLD_RULES, PERCEPTIONS
 
     cfg.domain.preset = str(cfg.domain.preset)  # the command line reads preset=2005 as a number
     turnover = OmegaConf.select(cfg, "domain.turnover_cycles")
     if turnover is not None:
         turnover = require_int(cfg, "domain.turnover_cycles", 1, 100)
+    server = OmegaConf.select(cfg, "domain.perception") == "server"
+    if require_bool(cfg, "domain.noisy_observations") and server:
+        raise ConfigError(
+            "domain.noisy_observations=true quantises the exact state's view; domain.perception=server "
+            "quantises every player's sightings already: set domain.noisy_observations=false"
+        )
     return KeepawayConfig(
         preset=require_choice(cfg, "domain.preset", PRESETS),
         keepers=require_int(cfg, "domain.keepers", 2, 11),
@@ -193,6 +200,15 @@ def keepaway_config(cfg: DictConfig):
         intercept_horizon=require_int(cfg, "domain.intercept_horizon", 1, 200),
         collision_passes=require_int(cfg, "domain.collision_passes", 1, 100),
         kernels=keepaway_kernels(cfg),
+        **{
+            name: require_choice(cfg, f"domain.{name}", allowed)
+            for name, allowed in (
+                ("perception", PERCEPTIONS),
+                ("hold_ball", HOLD_RULES),
+                ("decision_timing", DECISION_TIMINGS),
+            )
+            if name in cfg.domain  # a config that predates the option keeps the simulator's default
+        },
     )
 
 

@@ -1,0 +1,142 @@
+"""Ablations of docs/keepaway.md "Fidelity": the benchmark policies and the Sarsa keepers' learning
+curve under one choice of the simulator's and the learner's details. Prints one JSON object.
+
+    PYTHONPATH=. python benchmarks/keepaway_fidelity.py policies --preset rcss19 [domain options]
+    PYTHONPATH=. python benchmarks/keepaway_fidelity.py learn --preset rcss19 [domain and learner options]
+
+Domain options are ``KeepawayConfig`` fields (``--perception server --hold-ball reference
+--decision-timing server --movement-noise false``). ``policies`` plays Always Hold, Random and
+Hand-coded (1000 episodes each by default; ``--cap-s`` cuts episodes at that length, for the settings
+where they may never end, exact perception with the reference HoldBall rule, and reports the share
+cut). ``learn``
+runs what ``train.py domain=keepaway agent=sarsa`` runs (the same construction, seeds and curve
+windows: 10 learners x 50 fields, 20 hours, one point per simulated hour) and adds the learner
+details train.py does not expose: ``--ties first`` (greedy ties go to the lowest action, HoldBall,
+instead of a uniform draw; the reference's argmaxQ draws) and ``--initial-q`` (every weight starts at
+initial_q / N, so every Q starts at initial_q; the reference starts at 0).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import torch
+
+torch.set_num_threads(1)
+
+from hfrl_torch.agents.sarsa import SarsaLambda  # noqa: E402
+from hfrl_torch.envs.keepaway import KeepawayConfig, KeepawayEnv  # noqa: E402
+from hfrl_torch.envs.keepaway.benchmark_policies import play_benchmark_policy  # noqa: E402
+from hfrl_torch.experiment.keepaway_sarsa import (  # noqa: E402
+    CYCLES_PER_HOUR,
+    KeepawayRecords,
+    make_sarsa_keepers,
+    run_sarsa_keepers,
+)
+
+POINTS_H = (1, 2, 5, 10, 20)
+
+
+def config_from(args: argparse.Namespace) -> KeepawayConfig:
+    return KeepawayConfig(
+        preset=args.preset,
+        perception=args.perception,
+        hold_ball=args.hold_ball,
+        decision_timing=args.decision_timing,
+        movement_noise=args.movement_noise == "true",
+        noisy_observations=args.noisy_observations == "true",
+    )
+
+
+def policies(args: argparse.Namespace) -> dict:
+    config = config_from(args)
+    out = {}
+    for policy in args.policies:
+        r = play_benchmark_policy(
+            policy,
+            args.episodes,
+            preset=config.preset,
+            batch=args.batch,
+            seed=args.seed,
+            progress=False,
+            cap_cycles=round(args.cap_s * 10) if args.cap_s else None,
+            **{k: v for k, v in vars(config).items() if k not in ("preset", "keepers", "takers")},
+        )
+        out[policy] = {k: round(v, 3) if isinstance(v, float) else v for k, v in r.items()}
+    return out
+
+
+def learn(args: argparse.Namespace) -> dict:
+    config = config_from(args)
+    fields = args.learners * args.fields_per_learner
+    agent = make_sarsa_keepers(
+        config, args.learners, fields_per_learner=args.fields_per_learner, seed=args.seed
+    )
+    if args.initial_q:
+        agent.coder.weight.fill_(args.initial_q / agent.coder.active_tiles)
+    if args.ties == "first":
+        _use_first_ties(agent)
+    records = KeepawayRecords(fields, config.keepers, args.fields_per_learner)
+    env = KeepawayEnv(fields, config, seed=args.seed, sync="any")
+    start = time.perf_counter()
+    run_sarsa_keepers(env, agent, records, cycles=round(args.hours * CYCLES_PER_HOUR))
+    wall = time.perf_counter() - start
+    curve = {}
+    for h in (h for h in POINTS_H if h <= args.hours):
+        w = records.time_window((h - 1) * CYCLES_PER_HOUR, h * CYCLES_PER_HOUR)
+        curve[str(h)] = (
+            None
+            if w is None
+            else {
+                k: round(w[k], 3)
+                for k in ("episode_s_mean", "episode_s_ci95_low", "episode_s_ci95_high", "hold_share")
+            }
+        )
+    return {"config": vars(args), "wall_s": round(wall, 1), "curve": curve}
+
+
+def _use_first_ties(agent: SarsaLambda) -> None:
+    """Greedy ties to the lowest action; exploration draws as in :meth:`SarsaLambda.select`."""
+
+    def select(q: torch.Tensor, mask: torch.Tensor, explore: bool = True) -> torch.Tensor:
+        m, a = q.shape
+        torch.rand(m, a, generator=agent.generator, device=q.device)  # the tie draw, unused
+        random_noise = torch.rand(m, a, generator=agent.generator, device=q.device)
+        explore_draw = torch.rand(m, generator=agent.generator, device=q.device)
+        best = q.masked_fill(~mask, -torch.inf).amax(1, keepdim=True)
+        greedy = (mask & (q == best)).to(torch.int8).argmax(1)
+        if not explore:
+            return greedy
+        uniform = torch.where(mask, random_noise, -1.0).argmax(1)
+        return torch.where(explore_draw < agent.epsilon, uniform, greedy)
+
+    agent.select = select
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("mode", choices=("policies", "learn"))
+    parser.add_argument("--preset", default="rcss19")
+    parser.add_argument("--perception", default="exact")
+    parser.add_argument("--hold-ball", default="spec")
+    parser.add_argument("--decision-timing", default="cycle")
+    parser.add_argument("--movement-noise", default="true", choices=("true", "false"))
+    parser.add_argument("--noisy-observations", default="false", choices=("true", "false"))
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--episodes", type=int, default=1000)
+    parser.add_argument("--batch", type=int, default=500)
+    parser.add_argument("--cap-s", type=float, default=0.0)
+    parser.add_argument("--policies", nargs="+", default=["hold", "random", "hand"])
+    parser.add_argument("--learners", type=int, default=10)
+    parser.add_argument("--fields-per-learner", type=int, default=50)
+    parser.add_argument("--hours", type=float, default=20.0)
+    parser.add_argument("--ties", default="random", choices=("random", "first"))
+    parser.add_argument("--initial-q", type=float, default=0.0)
+    args = parser.parse_args()
+    print(json.dumps(policies(args) if args.mode == "policies" else learn(args)))
+
+
+if __name__ == "__main__":
+    main()
