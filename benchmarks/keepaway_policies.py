@@ -1,7 +1,9 @@
 """Mean episode duration (95 % interval), taken and out shares of the three benchmark keeper
-policies in both presets. Prints one JSON list.
+policies in both presets. Prints one JSON list. The task options default to the domain config's
+(server perception, the reference HoldBall rule and decision timing); ``--perception exact
+--hold-ball spec --decision-timing cycle`` is the exact-state task.
 
-    python benchmarks/keepaway_policies.py [--episodes 1000] [--batch 500]
+    python benchmarks/keepaway_policies.py [--episodes 1000] [--batch 500] [--perception exact|server]
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import torch
 torch.set_num_threads(1)
 
 from hfrl_torch.envs.keepaway import play_benchmark_policy  # noqa: E402
+from hfrl_torch.envs.keepaway.params import DECISION_TIMINGS, HOLD_RULES, PERCEPTIONS  # noqa: E402
 
 
 def main() -> None:
@@ -24,12 +27,26 @@ def main() -> None:
     parser.add_argument("--presets", nargs="+", default=["2005", "rcss19"])
     parser.add_argument("--policies", nargs="+", default=["hold", "random", "hand"])
     parser.add_argument("--progress", action="store_true")
+    parser.add_argument("--perception", default="server", choices=PERCEPTIONS)
+    parser.add_argument("--hold-ball", default="reference", choices=HOLD_RULES)
+    parser.add_argument("--decision-timing", default="server", choices=DECISION_TIMINGS)
     args = parser.parse_args()
+    task = {
+        "perception": args.perception,
+        "hold_ball": args.hold_ball,
+        "decision_timing": args.decision_timing,
+    }
     results = []
     for preset in args.presets:
         for policy in args.policies:
             r = play_benchmark_policy(
-                policy, args.episodes, preset=preset, batch=args.batch, seed=args.seed, progress=args.progress
+                policy,
+                args.episodes,
+                preset=preset,
+                batch=args.batch,
+                seed=args.seed,
+                progress=args.progress,
+                **task,
             )
             results.append({k: round(v, 3) if isinstance(v, float) else v for k, v in r.items()})
     print(json.dumps(results, indent=2))

@@ -4,9 +4,12 @@ Runs the batched simulator with the Hand-coded keepers deciding inside each cycl
 benchmark-policy path) and, separately, the TorchRL env (SMDP steps, fields waiting for the
 slowest one), for B = 1, 64, 1024, 8192. On CPU the simulator runs twice, side by side: with the
 numba kernels (the default there) and with the pure-torch path as the reference. Prints one
-JSON object. One torch thread; the numba kernels are serial loops.
+JSON object. One torch thread; the numba kernels are serial loops. ``--perception server`` (with
+the reference HoldBall rule and decision timing, the domain config's defaults) times every player
+acting on its own world model; ``exact`` the true state.
 
     python benchmarks/keepaway_throughput.py [--cycles 40] [--repeats 5] [--batches 1 64 1024 8192]
+        [--perception exact|server]
 """
 
 from __future__ import annotations
@@ -23,14 +26,35 @@ from hfrl_torch import keys  # noqa: E402
 from hfrl_torch.envs.keepaway import KeepawayConfig, KeepawayEnv, KeepawaySimulator, hand_coded_actions  # noqa: E402
 
 
+def task(preset: str, perception: str) -> dict[str, str]:
+    """The simulator options of ``perception``: server perception with the reference's HoldBall
+    rule and decision timing (the domain config's defaults), or the exact state with the spec's."""
+    if perception == "server":
+        return {
+            "preset": preset,
+            "perception": "server",
+            "hold_ball": "reference",
+            "decision_timing": "server",
+        }
+    return {"preset": preset, "perception": "exact", "hold_ball": "spec", "decision_timing": "cycle"}
+
+
 def simulator_rates(
-    batch: int, cycles: int, device: str, preset: str, kernels: list[str], repeats: int = 1
+    batch: int,
+    cycles: int,
+    device: str,
+    preset: str,
+    kernels: list[str],
+    repeats: int = 1,
+    perception: str = "exact",
 ) -> dict[str, float]:
     """Field-cycles per second of the simulator with the hand-coded policy inline, for each
     kernel choice. The choices' timed runs of ``cycles`` cycles alternate (an A/B run in one
     process, so the VM's drifting speed hits them alike) and the best of ``repeats`` counts."""
     sims = {
-        k: KeepawaySimulator(batch, KeepawayConfig(preset=preset, kernels=k), device=device, seed=0)
+        k: KeepawaySimulator(
+            batch, KeepawayConfig(kernels=k, **task(preset, perception)), device=device, seed=0
+        )
         for k in kernels
     }
 
@@ -55,9 +79,9 @@ def simulator_rates(
     return {name: batch * cycles / seconds for name, seconds in best.items()}
 
 
-def env_rate(batch: int, steps: int, device: str, preset: str) -> dict[str, float]:
+def env_rate(batch: int, steps: int, device: str, preset: str, perception: str = "exact") -> dict[str, float]:
     """Active field-cycles and SMDP steps per second of the TorchRL env (hand-coded keepers)."""
-    env = KeepawayEnv(batch, device=device, seed=0, preset=preset)
+    env = KeepawayEnv(batch, device=device, seed=0, **task(preset, perception))
     td = env.reset()
     cycles = 0
     start = time.perf_counter()
@@ -80,23 +104,28 @@ def main() -> None:
     parser.add_argument("--preset", default="2005")
     parser.add_argument("--repeats", type=int, default=1, help="timed simulator runs; the best is reported")
     parser.add_argument("--devices", nargs="+", help="default: cpu, and cuda when present")
+    parser.add_argument("--perception", default="exact", choices=("exact", "server"))
     args = parser.parse_args()
     devices = args.devices or ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
     result: dict[str, object] = {
         "threads": torch.get_num_threads(),
         "preset": args.preset,
+        "perception": args.perception,
         "simulator": {},
         "env": {},
     }
     for device in devices:
         kernels = ["numba", "torch"] if device == "cpu" else ["torch"]
         rates = {
-            b: simulator_rates(b, args.cycles, device, args.preset, kernels, args.repeats)
+            b: simulator_rates(b, args.cycles, device, args.preset, kernels, args.repeats, args.perception)
             for b in args.batches
         }
         result["simulator"][device] = {k: {str(b): round(rates[b][k]) for b in args.batches} for k in kernels}
         result["env"][device] = {
-            str(b): {k: round(v) for k, v in env_rate(b, args.env_steps, device, args.preset).items()}
+            str(b): {
+                k: round(v)
+                for k, v in env_rate(b, args.env_steps, device, args.preset, args.perception).items()
+            }
             for b in args.batches
             if b <= 1024
         }

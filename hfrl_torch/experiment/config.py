@@ -23,7 +23,14 @@ from hfrl_torch.common.checkpoint import load_checkpoint
 from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.common.logger import BACKENDS
 from hfrl_torch.common.validation import require_bool, require_choice, require_float, require_int
-from hfrl_torch.envs.keepaway.params import KERNELS, PRESETS, KeepawayConfig
+from hfrl_torch.envs.keepaway.params import (
+    DECISION_TIMINGS,
+    HOLD_RULES,
+    KERNELS,
+    PERCEPTIONS,
+    PRESETS,
+    KeepawayConfig,
+)
 from hfrl_torch.envs.tetris.env import ENGINES
 from hfrl_torch.fusion.schedules import ADAPTIVE_WEIGHTS
 from hfrl_torch.fusion.schemes import FUSIONS, OPTIONS
@@ -438,7 +445,18 @@ def check_keepaway_domain(cfg: DictConfig) -> None:
     if OmegaConf.select(cfg, "domain.turnover_cycles") is not None:
         require_int(cfg, "domain.turnover_cycles", 1, 100)
     require_bool(cfg, "domain.movement_noise")
-    require_bool(cfg, "domain.noisy_observations")
+    for name, allowed in (
+        ("perception", PERCEPTIONS),
+        ("hold_ball", HOLD_RULES),
+        ("decision_timing", DECISION_TIMINGS),
+    ):
+        if name in cfg.domain:  # a saved run's config that predates the option keeps the simulator's default
+            require_choice(cfg, f"domain.{name}", allowed)
+    if require_bool(cfg, "domain.noisy_observations") and cfg.domain.get("perception") == "server":
+        raise ConfigError(
+            "domain.noisy_observations=true quantises the exact state's view; domain.perception=server "
+            "quantises every player's sightings already: set domain.noisy_observations=false"
+        )
     require_int(cfg, "domain.decision_period_cycles", 1, 100)
     require_int(cfg, "domain.intercept_horizon", 1, 200)
     require_int(cfg, "domain.collision_passes", 1, 100)

@@ -28,17 +28,28 @@ torch.set_num_threads(1)
 SYNCS = ("all", "any")
 
 
+SERVER = {"perception": "server", "hold_ball": "reference", "decision_timing": "server"}
+
+
 @pytest.mark.parametrize("sync", SYNCS)
 @pytest.mark.parametrize(
-    "options", [{}, {"preset": "rcss19", "decision_period_cycles": 5}, {"keepers": 4, "takers": 3}]
+    "options",
+    [
+        {},
+        {"preset": "rcss19", "decision_period_cycles": 5},
+        {"keepers": 4, "takers": 3},
+        SERVER,
+        {"keepers": 4, "takers": 3, "decision_period_cycles": 5, **SERVER},
+    ],
 )
 def test_check_env_specs(options: dict, sync: str) -> None:
     check_env_specs(KeepawayEnv(3, seed=1, sync=sync, **options))
 
 
+@pytest.mark.parametrize("options", [{}, SERVER])
 @pytest.mark.parametrize("sync", SYNCS)
-def test_partial_reset_changes_only_flagged_fields(sync: str) -> None:
-    env = KeepawayEnv(4, seed=2, sync=sync)
+def test_partial_reset_changes_only_flagged_fields(sync: str, options: dict) -> None:
+    env = KeepawayEnv(4, seed=2, sync=sync, **options)
     td = env.reset()
     td = env.rand_step(td)
     before = env.sim.state.clone()
@@ -48,7 +59,8 @@ def test_partial_reset_changes_only_flagged_fields(sync: str) -> None:
     after = env.reset(td["next"].clone().set(keys.RESET, flags))
     state = env.sim.state
     for i in (1, 3):
-        assert torch.equal(state.pos[i], before.pos[i])
+        for name, value in state.tensors().items():
+            assert torch.equal(value[i], getattr(before, name)[i]), name
         assert torch.equal(after[keys.OBSERVATION][i], obs_before[i])
         assert after[keys.DECIDING][i].item() == deciding_before[i].item()
     for i in (0, 2):
@@ -166,11 +178,14 @@ def test_same_seed_same_episode() -> None:
     assert _episode(5) != _episode(6)
 
 
-@pytest.mark.parametrize("sync,steps", [("all", 30), ("any", 400)])
-def test_rewards_count_cycles_per_keeper(sync: str, steps: int) -> None:
+@pytest.mark.parametrize(
+    "sync,steps,options", [("all", 30, {}), ("any", 400, {}), ("any", 300, {"perception": "server"})]
+)
+def test_rewards_count_cycles_per_keeper(sync: str, steps: int, options: dict) -> None:
     """Deciding fields get cycles since that keeper's last decision, ended fields the end rewards,
-    other fields 0; so each keeper's rewards add up to the episode's length after its first decision."""
-    env = KeepawayEnv(4, seed=3, sync=sync)
+    other fields 0; so each keeper's rewards add up to the episode's length after its first decision
+    (with the "cycle" decision timing; the "server" one restarts the clock while a pass carries on)."""
+    env = KeepawayEnv(4, seed=3, sync=sync, **options)
     td = env.reset()
     last: dict[int, dict[int, int]] = {b: {} for b in range(4)}  # field -> keeper -> cycle of last decision
     first: dict[int, dict[int, int]] = {b: {} for b in range(4)}

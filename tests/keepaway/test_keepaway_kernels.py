@@ -157,18 +157,32 @@ def test_coincident_objects_separate_alike() -> None:
     assert numba_out[2].all()
 
 
+SERVER = {"perception": "server", "hold_ball": "reference", "decision_timing": "server"}
+
+
 @pytest.mark.parametrize(
-    ("preset", "keepers", "takers", "noise"),
-    [("2005", 3, 2, True), ("rcss19", 4, 3, True), ("2005", 5, 4, False)],
+    ("preset", "keepers", "takers", "noise", "options"),
+    [
+        ("2005", 3, 2, True, {}),
+        ("rcss19", 4, 3, True, {}),
+        ("2005", 5, 4, False, {}),
+        ("rcss19", 3, 2, True, SERVER),  # every player's own world model: the kernels run per view
+        ("2005", 4, 3, True, SERVER),
+    ],
 )
 def test_simulated_episodes_identical(
-    one_thread: None, preset: str, keepers: int, takers: int, noise: bool
+    one_thread: None, preset: str, keepers: int, takers: int, noise: bool, options: dict
 ) -> None:
     sims = [
         KeepawaySimulator(
             48,
             KeepawayConfig(
-                preset=preset, keepers=keepers, takers=takers, movement_noise=noise, kernels=kernels
+                preset=preset,
+                keepers=keepers,
+                takers=takers,
+                movement_noise=noise,
+                kernels=kernels,
+                **options,
             ),
             seed=3,
         )
@@ -202,15 +216,18 @@ def test_kernel_choice() -> None:
 def test_gpu_torch_path_follows_cpu() -> None:
     """The GPU runs the torch path; from one state, its cycles agree with the CPU's to rounding
     (transcendental functions differ in the last bit), and a seed fixes its episodes."""
-    config = KeepawayConfig(movement_noise=False)
-    cpu = KeepawaySimulator(256, config, seed=5)
-    gpus = [KeepawaySimulator(256, config, device="cuda", seed=5) for _ in range(2)]
-    for gpu in gpus:
-        gpu.state = dataclasses.replace(cpu.state, **{k: v.cuda() for k, v in cpu.state.tensors().items()})
-    for _ in range(5):
-        for sim in (cpu, *gpus):
-            obs, _ = sim.observe(sim.decision().holder)
-            sim.step(hand_coded_actions(obs, 3, 2))
-    torch.testing.assert_close(gpus[0].state.pos.cpu(), cpu.state.pos, atol=1e-3, rtol=0)
-    for name, value in gpus[0].state.tensors().items():
-        assert torch.equal(value, getattr(gpus[1].state, name)), name
+    for options in ({}, SERVER):
+        config = KeepawayConfig(movement_noise=False, **options)
+        cpu = KeepawaySimulator(256, config, seed=5)
+        gpus = [KeepawaySimulator(256, config, device="cuda", seed=5) for _ in range(2)]
+        for gpu in gpus:
+            gpu.state = dataclasses.replace(
+                cpu.state, **{k: v.cuda() for k, v in cpu.state.tensors().items()}
+            )
+        for _ in range(5):
+            for sim in (cpu, *gpus):
+                obs, _ = sim.observe(sim.decision().holder)
+                sim.step(hand_coded_actions(obs, 3, 2))
+        torch.testing.assert_close(gpus[0].state.pos.cpu(), cpu.state.pos, atol=1e-3, rtol=0)
+        for name, value in gpus[0].state.tensors().items():
+            assert torch.equal(value, getattr(gpus[1].state, name)), name

@@ -16,7 +16,7 @@ from tqdm import tqdm
 
 from hfrl_torch.envs.keepaway.params import KeepawayConfig
 from hfrl_torch.envs.keepaway.policies import make_benchmark_policy
-from hfrl_torch.envs.keepaway.referee import END_OUT, END_TAKEN
+from hfrl_torch.envs.keepaway.referee import END_OUT, END_RUNNING, END_TAKEN
 from hfrl_torch.envs.keepaway.render import render_rgb, write_gif
 from hfrl_torch.envs.keepaway.simulator import KeepawaySimulator
 
@@ -66,6 +66,7 @@ def play_keeper_policy(
     device: str = "cpu",
     progress: bool = True,
     teams: int | None = None,
+    cap_cycles: int | None = None,
     **sim_options: Any,
 ) -> dict[str, Any]:
     """Play ``episodes`` episodes of keeper policy ``choose`` (called every cycle on every field, see
@@ -78,6 +79,9 @@ def play_keeper_policy(
     :param name: the policy's label in the result and the progress bar.
     :param teams: field f plays for team f % teams (a learned checkpoint's learners); the result then
         also holds ``teams`` and ``per_team_mean_s`` (None for a team without a kept episode).
+    :param cap_cycles: cut an episode that reaches this many cycles (counted at that length, neither
+        taken nor out; the result then also holds ``cut_share``), for policies whose episodes may
+        never end.
     :param sim_options: further :class:`KeepawayConfig` fields (``length``, ``width``,
         ``turnover_cycles``, ``movement_noise``, ``noisy_observations``, ...).
     :returns: domain, policy, preset, keepers, takers, episodes, mean_s, sd_s, median_s,
@@ -102,9 +106,12 @@ def play_keeper_policy(
     while bool(active.any()):
         holder = sim.decision().holder
         obs, _ = sim.observe(holder)
-        out = sim.step(choose(obs, mask, holder), active=active, auto_reset=True)
+        out = sim.step(choose(obs, mask, holder), active=active, auto_reset=False)
         field_cycles += int(active.sum())
+        if cap_cycles is not None:
+            out.ended = out.ended | (active & (out.episode_cycles >= cap_cycles))
         if bool(out.ended.any()):
+            sim.reset(out.ended)
             rows = out.ended.nonzero().squeeze(-1)
             slot = played[rows]
             durations[rows, slot] = out.episode_cycles[rows]
@@ -136,6 +143,8 @@ def play_keeper_policy(
         "out_share": float((kept_causes == END_OUT).double().mean()),
         "cycles_per_s": field_cycles / elapsed if elapsed > 0 else float("nan"),
     }
+    if cap_cycles is not None:
+        result["cut_share"] = float((kept_causes == END_RUNNING).double().mean())
     if teams is not None:
         team = torch.div(torch.arange(episodes), quota, rounding_mode="floor") % teams
         result["teams"] = teams

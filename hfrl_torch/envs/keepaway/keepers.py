@@ -54,6 +54,7 @@ def keeper_commands(
     grid: Tensor,
     physics: PhysicsParams,
     kernels: str = "auto",
+    hold_rule: str = "spec",
 ) -> tuple[Tensor, Tensor]:
     """Commands [B, n, 3] of all keepers, and the keeper with (or next to get) the ball [B].
 
@@ -62,6 +63,7 @@ def keeper_commands(
     :param pass_target: keeper the holder passes to, -1 for HoldBall [B].
     :param grid: GetOpen candidates [25, 2].
     :param kernels: how GetOpen's search runs (``KeepawayConfig.kernels``).
+    :param hold_rule: HoldBall's rule (``KeepawayConfig.hold_ball``; "reference" reads ``taker_body``).
     """
     batch, keepers = keeper_pos.shape[:2]
     horizon = ball_traj.shape[-2] - 1
@@ -93,7 +95,19 @@ def keeper_commands(
     pos = gather_points(keeper_pos, h).squeeze(1)
     vel = gather_points(keeper_vel, h).squeeze(1)
     body = keeper_body.gather(1, h).squeeze(1)
-    hold = hold_ball(pos, vel, body, ball_pos, ball_vel, taker_pos, HOLD_RATIO_KEEPER, GOAL_X, physics)
+    hold = hold_ball(
+        pos,
+        vel,
+        body,
+        ball_pos,
+        ball_vel,
+        taker_pos,
+        HOLD_RATIO_KEEPER,
+        GOAL_X,
+        physics,
+        taker_body,
+        hold_rule,
+    )
     target_pos = gather_points(keeper_pos, pass_target.clamp_min(0).unsqueeze(-1)).squeeze(1)
     opponent_near = (norm(taker_pos - ball_pos.unsqueeze(-2)) < PASS_OPPONENT_RANGE).any(-1)
     kick = pass_ball(pos, vel, body, ball_pos, ball_vel, target_pos, opponent_near, physics)

@@ -62,6 +62,9 @@ def physics_preset(name: str) -> PhysicsParams:
 
 
 KERNELS = ("auto", "numba", "torch")
+PERCEPTIONS = ("exact", "server")
+HOLD_RULES = ("spec", "reference")
+DECISION_TIMINGS = ("cycle", "server")
 
 
 def resolve_kernels(kernels: str, device: torch.device, dtype: torch.dtype = torch.float32) -> str:
@@ -99,6 +102,17 @@ class KeepawayConfig:
     :param kernels: how GoToBall's and GetOpen's searches and the collision passes run, not what
         they compute: ``"auto"`` (numba for float32 on CPU, torch otherwise), ``"numba"`` or
         ``"torch"``.
+    :param perception: what the players know: ``"exact"`` (every player sees the true state every
+        cycle) or ``"server"`` (each player acts on its own world model, refreshed by the server's
+        quantised see message every 150 ms and extrapolated in between, as the UT keepaway players'
+        world model does; see perception.py).
+    :param hold_ball: HoldBall's opponent and side rule: ``"spec"`` (the nearest taker to the holder,
+        the side nearer the ball) or ``"reference"`` (BasicPlayer::holdBall: the opponent nearest the
+        ball, the side away from its body heading).
+    :param decision_timing: when the keeper with the ball decides: ``"cycle"`` (whenever it truly can
+        kick the ball; a pass runs while it stays kickable) or ``"server"`` (when its world model says
+        it can kick; a pass is re-decided at each see message and the reward clock restarts at every
+        cycle the pass is carried on, as KeepawayPlayer::keeperWithBall does).
     """
 
     preset: str = "2005"
@@ -113,11 +127,25 @@ class KeepawayConfig:
     intercept_horizon: int = 30
     collision_passes: int = 10
     kernels: str = "auto"
+    perception: str = "exact"
+    hold_ball: str = "spec"
+    decision_timing: str = "cycle"
 
     def __post_init__(self) -> None:
         physics_preset(self.preset)
-        if self.kernels not in KERNELS:
-            raise ValueError(f"kernels={self.kernels!r} is invalid; allowed: {', '.join(KERNELS)}")
+        for name, allowed in (
+            ("kernels", KERNELS),
+            ("perception", PERCEPTIONS),
+            ("hold_ball", HOLD_RULES),
+            ("decision_timing", DECISION_TIMINGS),
+        ):
+            if getattr(self, name) not in allowed:
+                raise ValueError(f"{name}={getattr(self, name)!r} is invalid; allowed: {', '.join(allowed)}")
+        if self.noisy_observations and self.perception == "server":
+            raise ValueError(
+                "noisy_observations=True quantises the exact state's view; perception='server' "
+                "quantises every player's sightings already: set noisy_observations=False"
+            )
         if self.keepers < 2:
             raise ValueError("keepaway needs at least 2 keepers")
         if self.takers < 1:
@@ -126,6 +154,11 @@ class KeepawayConfig:
             raise ValueError("decision_period_cycles must be >= 1")
         if self.length <= 0 or self.width <= 0:
             raise ValueError("the region must have a positive size")
+
+    @property
+    def sees(self) -> bool:
+        """Whether the players' see messages are timed (server perception or decision timing)."""
+        return self.perception == "server" or self.decision_timing == "server"
 
     @property
     def physics(self) -> PhysicsParams:

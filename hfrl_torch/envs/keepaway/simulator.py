@@ -8,13 +8,15 @@ Layer: engine. No TorchRL here; env.py wraps this in an EnvBase.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
-from hfrl_torch.envs.keepaway.keepers import keeper_commands
+from hfrl_torch.envs.keepaway.keepers import fastest_keeper, keeper_commands
 from hfrl_torch.envs.keepaway.params import KeepawayConfig, resolve_kernels
+from hfrl_torch.envs.keepaway.perception import extrapolate, observe, own_truth, see_phases, sees_now
 from hfrl_torch.envs.keepaway.physics import (
     DASH_KIND,
     KICK_KIND,
@@ -66,6 +68,11 @@ class KeepawayState:
     prev_holder: Tensor  # [B] keeper that executed its macro-action last cycle, -1 if none
     pass_target: Tensor  # [B] that keeper's pass target, -1 for HoldBall
     action_start: Tensor  # [B] cycle of that macro-action's decision
+    clock: Tensor  # [B] cycles since the simulator started, across episodes (the server's clock)
+    see_phase: Tensor  # [B, P] each player's see timing (P = 0 columns without timed sees)
+    seen_pos: Tensor  # [B, P, 1 + n + m, 2] each player's belief (P = 0 under exact perception)
+    seen_vel: Tensor  # [B, P, 1 + n + m, 2]
+    seen_body: Tensor  # [B, P, 1 + n + m]
     keepers: int
     takers: int
 
@@ -175,6 +182,15 @@ class KeepawaySimulator:
         self.rand = per_object(p.ball_rand, p.player_rand)
         self.grid = get_open_grid(self.config.length, self.config.width, self.device, dtype)
         zeros = torch.zeros(batch_size, dtype=torch.long, device=self.device)
+        self.server_perception = self.config.perception == "server"
+        self.server_timing = self.config.decision_timing == "server"
+        timed = players if self.config.sees else 0
+        believers = players if self.server_perception else 0
+        phase = (
+            see_phases(batch_size, players, self.generator, self.device)
+            if timed
+            else torch.zeros(batch_size, 0, dtype=torch.long, device=self.device)
+        )
         self.state = KeepawayState(
             pos=torch.zeros(batch_size, objects, 2, device=self.device, dtype=dtype),
             vel=torch.zeros(batch_size, objects, 2, device=self.device, dtype=dtype),
@@ -185,6 +201,11 @@ class KeepawaySimulator:
             prev_holder=zeros - 1,
             pass_target=zeros - 1,
             action_start=zeros.clone(),
+            clock=zeros.clone(),
+            see_phase=phase,
+            seen_pos=torch.zeros(batch_size, believers, objects, 2, device=self.device, dtype=dtype),
+            seen_vel=torch.zeros(batch_size, believers, objects, 2, device=self.device, dtype=dtype),
+            seen_body=torch.zeros(batch_size, believers, objects, device=self.device, dtype=dtype),
             keepers=n,
             takers=m,
         )
@@ -212,11 +233,21 @@ class KeepawaySimulator:
         )
         s = self.state
         zeros = torch.zeros_like(s.counter)
+        pos = torch.cat((ball.unsqueeze(1), keepers, takers), dim=1)
+        vel = torch.zeros_like(s.vel)
+        seen_pos, seen_vel, seen_body = s.seen_pos, s.seen_vel, s.seen_body
+        if self.server_perception:  # everyone sees the reset state (the reference searches for <= 1 cycle)
+            seen_pos, seen_vel, seen_body = observe(
+                pos, vel, s.body, seen_pos, torch.zeros_like(seen_vel), seen_body, cfg.keepers, self.physics
+            )
         return dataclasses.replace(
             s,
-            pos=torch.cat((ball.unsqueeze(1), keepers, takers), dim=1),
-            vel=torch.zeros_like(s.vel),
+            pos=pos,
+            vel=vel,
             body=s.body.clone(),
+            seen_pos=seen_pos,
+            seen_vel=seen_vel,
+            seen_body=seen_body,
             counter=zeros,
             episode_cycles=zeros.clone(),
             last_decision=torch.full_like(s.last_decision, -1),
@@ -244,14 +275,26 @@ class KeepawaySimulator:
         nearest = dist.min(-1)
         holder = nearest.indices
         kickable = nearest.values <= self.physics.kickable_distance
-        running = (s.prev_holder == holder) & (
-            (s.pass_target >= 0) | (s.episode_cycles - s.action_start < self.config.decision_period_cycles)
+        passing = s.pass_target >= 0
+        if self.server_timing:
+            if self.server_perception:  # KeepawayPlayer::keeper: WM->isBallKickable(), its own belief
+                me = gather_points(s.keeper_pos, holder.unsqueeze(-1)).squeeze(1)
+                believed = s.seen_pos[torch.arange(s.batch_size, device=self.device), holder, 0]
+                kickable = norm(believed - me) < self.physics.kickable_distance
+            sees = sees_now(s.clock, s.see_phase).gather(1, holder.unsqueeze(-1)).squeeze(-1)
+            passing = passing & ~sees  # keeperWithBall re-decides at each see message
+        holding = (s.pass_target < 0) & (
+            s.episode_cycles - s.action_start < self.config.decision_period_cycles
         )
+        running = (s.prev_holder == holder) & (passing | holding)
         return Decision(holder=holder, kickable=kickable, must_decide=kickable & ~running)
 
     def _seen_positions(self, decider: Tensor, s: KeepawayState) -> tuple[Tensor, Tensor]:
         """Keeper and taker positions as keeper ``decider`` perceives them."""
         keepers, takers = s.keeper_pos, s.taker_pos
+        if self.server_perception:
+            mine = s.seen_pos[torch.arange(s.batch_size, device=self.device), decider]  # [B, O, 2]
+            return mine[:, 1 : 1 + s.keepers], mine[:, 1 + s.keepers :]
         if self.config.noisy_observations:
             me = gather_points(keepers, decider.unsqueeze(-1)).squeeze(1)
             my_body = s.body[:, 1:].gather(1, decider.unsqueeze(-1)).squeeze(-1)
@@ -263,7 +306,8 @@ class KeepawaySimulator:
 
     def observe(self, decider: Tensor, state: KeepawayState | None = None) -> tuple[Tensor, Tensor]:
         """State variables [B, 4n + 2m - 3] of keeper ``decider`` [B] and its teammates by
-        distance [B, n - 1]; through the quantised sensor if ``noisy_observations``."""
+        distance [B, n - 1]: from its world model under server perception, through the quantised
+        sensor if ``noisy_observations``."""
         s = self.state if state is None else state
         keepers, takers = self._seen_positions(decider, s)
         return keeper_state_variables(keepers, takers, decider)
@@ -278,6 +322,168 @@ class KeepawaySimulator:
 
     def _uniforms(self, *shape: int) -> Tensor:
         return torch.rand(shape, generator=self.generator, device=self.device, dtype=self.dtype)
+
+    def _commands(
+        self,
+        ppos: Tensor,
+        pvel: Tensor,
+        pbody: Tensor,
+        ball: Tensor,
+        ball_vel: Tensor,
+        holder: Tensor,
+        kickable: Tensor,
+        pass_target: Tensor,
+    ) -> Tensor:
+        """Commands [B, P, 3] of every player acting on the true state: the keepers' and the takers'
+        skills."""
+        cfg, p = self.config, self.physics
+        n = cfg.keepers
+        traj = predict_ball(ball, ball_vel, p.ball_decay, cfg.intercept_horizon)
+        rest = ball_rest_point(ball, ball_vel, p.ball_decay)
+        cycles, points = intercept_estimate(
+            ppos, pvel, pbody, ball, ball_vel, cfg.intercept_horizon, p, self.kernels
+        )
+        kcmd, with_ball = keeper_commands(
+            ppos[:, :n],
+            pvel[:, :n],
+            pbody[:, :n],
+            ppos[:, n:],
+            pbody[:, n:],
+            ball,
+            ball_vel,
+            traj,
+            rest,
+            cycles[:, :n],
+            points[:, :n],
+            holder,
+            kickable,
+            pass_target,
+            self.grid,
+            p,
+            self.kernels,
+            cfg.hold_ball,
+        )
+        tcmd = taker_commands(
+            ppos[:, :n],
+            pbody[:, :n],
+            ppos[:, n:],
+            pvel[:, n:],
+            pbody[:, n:],
+            ball,
+            ball_vel,
+            points[:, n:],
+            with_ball,
+            p,
+            cfg.hold_ball,
+        )
+        return torch.cat((kcmd, tcmd), dim=1)
+
+    def _commands_from_beliefs(
+        self, s: KeepawayState, holder: Tensor, kickable: Tensor, pass_target: Tensor
+    ) -> Tensor:
+        """Commands [B, P, 3] with every player acting on its own world model (server perception):
+        keepers' skills in one view per keeper, takers' in one view per taker."""
+        cfg, p = self.config, self.physics
+        n, m = cfg.keepers, cfg.takers
+        batch, objects = s.batch_size, 1 + n + m
+        horizon = cfg.intercept_horizon
+
+        def views(first: int, count: int) -> tuple[Tensor, Tensor, Tensor]:
+            shape = (batch * count, objects)
+            return (
+                s.seen_pos[:, first : first + count].reshape(*shape, 2),
+                s.seen_vel[:, first : first + count].reshape(*shape, 2),
+                s.seen_body[:, first : first + count].reshape(shape),
+            )
+
+        def diagonal(cmd: Tensor, count: int) -> Tensor:  # view k's command of player k: [B, count, 3]
+            return torch.diagonal(cmd.view(batch, count, count, 3), dim1=1, dim2=2).transpose(1, 2)
+
+        # keepers: each keeper's skills from its own view
+        pos, vel, body = views(0, n)
+        ball, ball_vel = pos[:, 0], vel[:, 0]
+        kpos, kvel, kbody = pos[:, 1 : 1 + n], vel[:, 1 : 1 + n], body[:, 1 : 1 + n]
+        cycles, points = intercept_estimate(kpos, kvel, kbody, ball, ball_vel, horizon, p, self.kernels)
+        rep = functools.partial(torch.repeat_interleave, repeats=n, dim=0)
+        kcmd, _ = keeper_commands(
+            kpos,
+            kvel,
+            kbody,
+            pos[:, 1 + n :],
+            body[:, 1 + n :],
+            ball,
+            ball_vel,
+            predict_ball(ball, ball_vel, p.ball_decay, horizon),
+            ball_rest_point(ball, ball_vel, p.ball_decay),
+            cycles,
+            points,
+            rep(holder),
+            rep(kickable),
+            rep(pass_target),
+            self.grid,
+            p,
+            self.kernels,
+            cfg.hold_ball,
+        )
+        # takers: each taker's skills from its own view (all players' look-ahead only for BlockPass)
+        pos, vel, body = views(n, m)
+        ball, ball_vel = pos[:, 0], vel[:, 0]
+        searched = slice(1, objects) if m > 2 else slice(1 + n, objects)
+        cycles, points = intercept_estimate(
+            pos[:, searched], vel[:, searched], body[:, searched], ball, ball_vel, horizon, p, self.kernels
+        )
+        rep = functools.partial(torch.repeat_interleave, repeats=m, dim=0)
+        with_ball = fastest_keeper(cycles[:, :n], rep(holder), rep(kickable)) if m > 2 else rep(holder)
+        tcmd = taker_commands(
+            pos[:, 1 : 1 + n],
+            body[:, 1 : 1 + n],
+            pos[:, 1 + n :],
+            vel[:, 1 + n :],
+            body[:, 1 + n :],
+            ball,
+            ball_vel,
+            points[:, -m:],
+            with_ball,
+            p,
+            cfg.hold_ball,
+        )
+        return torch.cat((diagonal(kcmd, n), diagonal(tcmd, m)), dim=1)
+
+    def _updated_beliefs(
+        self, s: KeepawayState, cmd: Tensor, pos: Tensor, vel: Tensor, body: Tensor, clock: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """Every player's world model after this cycle: extrapolated from its belief and its own
+        command, then replaced by a see message of the new state where the player gets one."""
+        p, n = self.physics, self.config.keepers
+        kind, power, angle = cmd.unbind(-1)
+        me_pos, me_body = s.pos[:, 1:], s.body[:, 1:]
+        ball_seen, ball_vel_seen = s.seen_pos[:, :, 0], s.seen_vel[:, :, 0]
+        kick = kind == KICK_KIND
+        kicked = kick & (norm(ball_seen - me_pos) < p.kickable_distance)
+        kick_power = torch.where(kick, power, torch.zeros_like(power))
+        accel = kick_acceleration(me_pos, me_body, ball_seen, ball_vel_seen, kick_power, angle, p)
+        pred = extrapolate(s.seen_pos, s.seen_vel, s.seen_body, accel, kicked, n, p)
+        sees = sees_now(clock, s.see_phase)
+        if not bool(sees.any()):
+            return own_truth(*pred, pos, vel, body)
+        shape = s.seen_body.shape
+        seen = observe(pos, vel, body, *pred, n, p, self._uniforms(*shape))
+        pred = own_truth(*pred, pos, vel, body)
+        return (
+            torch.where(sees[..., None, None], seen[0], pred[0]),
+            torch.where(sees[..., None, None], seen[1], pred[1]),
+            torch.where(sees[..., None], seen[2], pred[2]),
+        )
+
+    def _restart_reward_clock(self, s: KeepawayState) -> KeepawayState:
+        """Server decision timing: where the holder's pass carries on into this cycle (the ball still
+        kickable), its last-decision cycle becomes this one (keeperWithBall's ``setLastAction`` on
+        the follow-through), so the next reward counts from here."""
+        dec = self.decision(s)
+        carried = dec.kickable & (s.prev_holder == dec.holder) & (s.pass_target >= 0)
+        h = dec.holder.unsqueeze(-1)
+        now = torch.where(carried, s.episode_cycles, s.last_decision.gather(1, h).squeeze(-1))
+        return dataclasses.replace(s, last_decision=s.last_decision.scatter(1, h, now.unsqueeze(-1)))
 
     def step(
         self, actions: Tensor | None = None, active: Tensor | None = None, auto_reset: bool = False
@@ -317,43 +523,10 @@ class KeepawaySimulator:
         # commands
         ball, ball_vel = s.ball_pos, s.ball_vel
         ppos, pvel, pbody = s.pos[:, 1:], s.vel[:, 1:], s.body[:, 1:]
-        traj = predict_ball(ball, ball_vel, p.ball_decay, cfg.intercept_horizon)
-        rest = ball_rest_point(ball, ball_vel, p.ball_decay)
-        cycles, points = intercept_estimate(
-            ppos, pvel, pbody, ball, ball_vel, cfg.intercept_horizon, p, self.kernels
-        )
-        kcmd, with_ball = keeper_commands(
-            ppos[:, :n],
-            pvel[:, :n],
-            pbody[:, :n],
-            ppos[:, n:],
-            pbody[:, n:],
-            ball,
-            ball_vel,
-            traj,
-            rest,
-            cycles[:, :n],
-            points[:, :n],
-            holder,
-            dec.kickable,
-            pass_target,
-            self.grid,
-            p,
-            self.kernels,
-        )
-        tcmd = taker_commands(
-            ppos[:, :n],
-            pbody[:, :n],
-            ppos[:, n:],
-            pvel[:, n:],
-            pbody[:, n:],
-            ball,
-            ball_vel,
-            points[:, n:],
-            with_ball,
-            p,
-        )
-        cmd = torch.cat((kcmd, tcmd), dim=1)  # [B, P, 3]
+        if self.server_perception:
+            cmd = self._commands_from_beliefs(s, holder, dec.kickable, pass_target)
+        else:
+            cmd = self._commands(ppos, pvel, pbody, ball, ball_vel, holder, dec.kickable, pass_target)
         kind, power, angle = cmd.unbind(-1)
 
         # physics
@@ -394,18 +567,29 @@ class KeepawaySimulator:
         counter = update_turnover_counter(s.counter, pos[:, 0], pos[:, 1 : 1 + n], pos[:, 1 + n :], kd)
         cause = end_cause(ball_in_region(pos[:, 0], cfg.length, cfg.width), counter, cfg.turnover)
         episode_cycles = s.episode_cycles + 1
+        body = torch.cat((s.body[:, :1], new_body), dim=1)
+        clock = s.clock + 1
+        seen = (s.seen_pos, s.seen_vel, s.seen_body)
+        if self.server_perception:
+            seen = self._updated_beliefs(s, cmd, pos, vel, body, clock)
         new_state = dataclasses.replace(
             s,
             pos=pos,
             vel=vel,
-            body=torch.cat((s.body[:, :1], new_body), dim=1),
+            body=body,
             counter=counter,
             episode_cycles=episode_cycles,
             last_decision=last_decision,
             prev_holder=torch.where(dec.kickable, holder, torch.full_like(holder, -1)),
             pass_target=pass_target,
             action_start=action_start,
+            clock=clock,
+            seen_pos=seen[0],
+            seen_vel=seen[1],
+            seen_body=seen[2],
         )
+        if self.server_timing:
+            new_state = self._restart_reward_clock(new_state)
         self.state = new_state.where(active, s)
         ended = active & (cause != END_RUNNING)
         outcome = CycleOutcome(

@@ -453,36 +453,61 @@ def hold_ball(
     ratio: float,
     goal_x: float,
     physics: PhysicsParams,
+    opp_body: Tensor | None = None,
+    rule: str = "spec",
 ) -> Tensor:
     """HoldBall for one player per field [B].
 
-    With an opponent within 5 m of the player, the ball goes to 45 degrees off the line
-    nearest opponent -> me, on whichever side of that line the ball already is; otherwise
-    straight ahead of the body. (The reference took the opponent closest to the ball and chose
-    the side away from its body heading; with exact, every-cycle knowledge of that heading this
-    locks keeper and takers into a cycle where the takers only turn, see docs/keepaway.md item
-    14.) If the ball already lies within 0.3 m of that spot and stays kickable, the player turns
-    towards the pitch's goal (goal_x, 0) instead of kicking. The kick is
-    :func:`kick_ball_close_to_body` (which freezes a fast ball it cannot redirect).
+    ``rule="spec"``: with an opponent within 5 m of the player, the ball goes to 45 degrees off the
+    line nearest opponent -> me, on whichever side of that line the ball already is; otherwise
+    straight ahead of the body. If the ball already lies within 0.3 m of that spot and stays
+    kickable, the player turns towards the pitch's goal (goal_x, 0) instead of kicking.
+
+    ``rule="reference"`` (BasicPlayer::holdBall(ratio)): the opponent nearest the **ball**, if within
+    5 m of it, decides; the ball goes to the side away from that opponent's body heading
+    ``opp_body`` [B, M] (iSign = -sign(normalize(body_opp - dir(me - opp))), sign(0) = -1). The turn
+    test puts the spot ``ratio`` metres away along the body-relative angle read as a global one
+    (the reference's slip), and the turn needs the ball to stay within 0.85 x kickable. With exact,
+    every-cycle knowledge of the opponents' heading this rule locks keeper and takers into a loop
+    (docs/keepaway.md item 14); with the server's perception it does not.
+
+    The kick is :func:`kick_ball_close_to_body` (which freezes a fast ball it cannot redirect).
 
     :param opp_pos: opponents [B, M, 2].
     """
-    opp_dist = norm(opp_pos - pos.unsqueeze(-2))
-    nearest = opp_dist.argmin(-1, keepdim=True)
-    near_pos = torch.gather(opp_pos, -2, nearest.unsqueeze(-1).expand(-1, 1, 2)).squeeze(-2)
-    close = torch.gather(opp_dist, -1, nearest).squeeze(-1) < HOLD_OPPONENT_RANGE
-    away = direction(pos - near_pos)
     reach = physics.player_size + physics.ball_size + ratio * physics.kickable_margin
-    plus = wrap_angle(away + math.radians(45.0))
-    minus = wrap_angle(away - math.radians(45.0))
-    plus_nearer = norm(pos + reach * unit(plus) - ball_pos) <= norm(pos + reach * unit(minus) - ball_pos)
-    angle = torch.where(close, torch.where(plus_nearer, plus, minus), body)
-    spot = pos + reach * unit(angle)
+    if rule == "reference":
+        if opp_body is None:
+            raise ValueError("hold_ball(rule='reference') needs the opponents' body angles")
+        to_ball = norm(opp_pos - ball_pos.unsqueeze(-2))
+        nearest = to_ball.argmin(-1, keepdim=True)
+        near_pos = torch.gather(opp_pos, -2, nearest.unsqueeze(-1).expand(-1, 1, 2)).squeeze(-2)
+        near_body = torch.gather(opp_body, -1, nearest).squeeze(-1)
+        close = torch.gather(to_ball, -1, nearest).squeeze(-1) < HOLD_OPPONENT_RANGE
+        away = direction(pos - near_pos)
+        side = torch.where(wrap_angle(near_body - away) > 0, -1.0, 1.0)
+        relative = wrap_angle(away + side * math.radians(45.0) - body)
+        relative = torch.where(close, relative, torch.zeros_like(body))
+        angle = wrap_angle(body + relative)
+        test_spot = pos + ratio * unit(relative)
+    elif rule == "spec":
+        opp_dist = norm(opp_pos - pos.unsqueeze(-2))
+        nearest = opp_dist.argmin(-1, keepdim=True)
+        near_pos = torch.gather(opp_pos, -2, nearest.unsqueeze(-1).expand(-1, 1, 2)).squeeze(-2)
+        close = torch.gather(opp_dist, -1, nearest).squeeze(-1) < HOLD_OPPONENT_RANGE
+        away = direction(pos - near_pos)
+        plus = wrap_angle(away + math.radians(45.0))
+        minus = wrap_angle(away - math.radians(45.0))
+        plus_nearer = norm(pos + reach * unit(plus) - ball_pos) <= norm(pos + reach * unit(minus) - ball_pos)
+        angle = torch.where(close, torch.where(plus_nearer, plus, minus), body)
+        test_spot = pos + reach * unit(angle)
+    else:
+        raise ValueError(f"hold_ball rule={rule!r} is invalid; allowed: spec, reference")
     kick = kick_ball_close_to_body(pos, vel, body, ball_pos, ball_vel, angle, ratio, physics)
     goal = torch.tensor([goal_x, 0.0], device=pos.device, dtype=pos.dtype).expand_as(pos)
     turn = face_point(pos, vel, body, goal, physics)
     stays = norm((ball_pos + ball_vel) - (pos + vel)) < 0.85 * physics.kickable_distance
-    return choose((norm(ball_pos - spot) < HOLD_SPOT_TOLERANCE) & stays, turn, kick)
+    return choose((norm(ball_pos - test_spot) < HOLD_SPOT_TOLERANCE) & stays, turn, kick)
 
 
 def pass_ball(

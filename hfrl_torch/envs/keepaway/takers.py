@@ -30,6 +30,7 @@ def taker_commands(
     intercept_point: Tensor,
     keeper_with_ball: Tensor,
     physics: PhysicsParams,
+    hold_rule: str = "spec",
 ) -> Tensor:
     """Commands [B, m, 3] of all takers for this cycle.
 
@@ -39,6 +40,7 @@ def taker_commands(
 
     :param intercept_point: GoToBall points of the takers [B, m, 2].
     :param keeper_with_ball: the keeper that has or will first get the ball [B].
+    :param hold_rule: HoldBall's rule (``KeepawayConfig.hold_ball``; "reference" reads ``keeper_body``).
     """
     batch, takers = taker_pos.shape[:2]
     kickable = physics.kickable_distance
@@ -83,6 +85,8 @@ def taker_commands(
         HOLD_RATIO_TAKER,
         -GOAL_X,
         physics,
+        keeper_body,
+        hold_rule,
     )
     holding = (nearest_taker.values <= kickable).unsqueeze(-1) & (rank == 0)
     return choose(holding, hold.unsqueeze(1).expand(batch, takers, 3), cmd)
