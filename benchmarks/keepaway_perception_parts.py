@@ -9,6 +9,8 @@ decision timing. Prints one JSON line per variant.
 * ``holder_every_cycle``: only the keeper closest to the ball sees every cycle;
 * ``holder_ball_blind_exact``: that keeper knows the true ball in the cycles without a see;
 * ``holder_players_blind_exact``: ... the true players instead;
+* ``others_ball_exact``: every keeper but the one closest to the ball knows the true ball (an upper
+  bound on what the say/hear messages, not modelled, could tell them);
 * ``opponents_roll_out``: the world model moves unseen opponents with their velocity, like teammates,
   instead of its soccer heuristics (0.3 m towards the ball, 0.25 m along x);
 * ``keepers_only`` / ``takers_only``: only one team acts on its world model, the other on the truth.
@@ -37,6 +39,7 @@ VARIANTS = (
     "holder_every_cycle",
     "holder_ball_blind_exact",
     "holder_players_blind_exact",
+    "others_ball_exact",
     "opponents_roll_out",
     "keepers_only",
     "takers_only",
@@ -111,7 +114,15 @@ def install(variant: str) -> None:
                     t_body[:, team],
                 )
                 return b_pos, b_vel, b_body
-            blind = ~sees_now(clock, s.see_phase) & _holder_mask(self, pos, s.see_phase)
+            holder = _holder_mask(self, pos, s.see_phase)
+            if variant == "others_ball_exact":
+                others = ~holder
+                others[:, n:] = False
+                m = others[..., None]
+                b_pos[:, :, 0] = torch.where(m, t_pos[:, :, 0], b_pos[:, :, 0])
+                b_vel[:, :, 0] = torch.where(m, t_vel[:, :, 0], b_vel[:, :, 0])
+                return b_pos, b_vel, b_body
+            blind = ~sees_now(clock, s.see_phase) & holder
             objects = slice(0, 1) if variant == "holder_ball_blind_exact" else slice(1, None)
             m = blind[..., None, None]
             b_pos[:, :, objects] = torch.where(m, t_pos[:, :, objects], b_pos[:, :, objects])
