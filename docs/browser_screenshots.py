@@ -17,17 +17,20 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
+from PIL import Image
 from playwright.sync_api import Page, sync_playwright
 
 ROOT = Path(__file__).resolve().parents[1]
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 STAMP = """() => {
   const d = document.createElement("div");
-  d.textContent = "Screenshot from a scripted browser (Playwright + Chromium): the presses are a script's, not a person's";
-  Object.assign(d.style, { position: "fixed", right: "0", bottom: "0", background: "#223", color: "#ffe040",
+  d.textContent = "Screenshot from a scripted browser (Playwright + Chromium): " +
+    "the presses are a script's, not a person's";
+  Object.assign(d.style, { position: "fixed", right: "0", top: "0", background: "#223", color: "#ffe040",
     font: "12px system-ui, sans-serif", padding: "3px 8px", zIndex: 99 });
   document.body.appendChild(d);
 }"""
@@ -48,14 +51,18 @@ def _train(run_dir: Path, *overrides: str) -> tuple[subprocess.Popen, str]:
     assert proc.stderr is not None
     for line in proc.stderr:
         if "Teach the agent in your browser:" in line:
+            # go on reading its progress bars: a full pipe would block the run
+            threading.Thread(target=proc.stderr.read, daemon=True).start()
             return proc, line.split("browser:", 1)[1].strip()
     raise RuntimeError("train.py did not print the page's URL")
 
 
-def _shot(page: Page, path: Path, full: bool = False) -> None:
+def _shot(page: Page, path: Path) -> None:
+    """The page as it is, stamped, in 128 colours (a small PNG)."""
     page.evaluate(STAMP)
-    page.screenshot(path=str(path), full_page=full)
-    print("wrote", path)
+    page.screenshot(path=str(path))
+    Image.open(path).convert("RGB").quantize(colors=128).save(path, optimize=True)
+    print("wrote", path, path.stat().st_size, "bytes")
 
 
 def _teach_tetris(page: Page, seconds: float, rng: random.Random) -> None:
@@ -75,11 +82,11 @@ def _teach_tetris(page: Page, seconds: float, rng: random.Random) -> None:
 
 
 def tetris(out: Path, work: Path, rng: random.Random) -> None:
-    overrides = ["trainer.wait_for_page_s=0", "agent.iterations=40", "agent.population=30"]
-    overrides += ["agent.games_per_candidate=3", "agent.eval_games=10"]
+    overrides = ["trainer.wait_for_page_s=0", "agent.iterations=300", "agent.population=30"]
+    overrides += ["agent.games_per_candidate=3", "agent.eval_games=10", "agent.watch_pieces=80"]
     proc, url = _train(work / "tetris", *overrides)
     try:
-        time.sleep(25)  # it practises alone first: hollow points on the curve
+        time.sleep(1.5)  # it practises alone first, at full speed: hollow points on the curve
         with sync_playwright() as p:
             browser = p.chromium.launch(executable_path=CHROMIUM, args=["--headless", "--no-sandbox"])
             page = browser.new_page(viewport={"width": 1280, "height": 900})
@@ -98,7 +105,7 @@ def tetris(out: Path, work: Path, rng: random.Random) -> None:
             _teach_tetris(page, 15, rng)
             page.click("#finish")
             page.wait_for_selector("#summary", state="visible", timeout=120_000)
-            _shot(page, out / "browser_trainer_summary.png", full=True)
+            _shot(page, out / "browser_trainer_summary.png")
             browser.close()
         proc.wait(timeout=60)
     finally:
@@ -118,6 +125,7 @@ def keepaway(out: Path, work: Path, rng: random.Random) -> None:
             for i in range(8):
                 time.sleep(rng.uniform(1.0, 2.5))
                 page.keyboard.press("/" if i % 2 == 0 else "z")
+            page.wait_for_timeout(1000)  # the flash of the last press fades
             page.wait_for_function("S.frame && S.frame.target >= 0", timeout=60_000, polling=20)
             _shot(page, out / "browser_trainer_keepaway.png")
             page.set_viewport_size({"width": 390, "height": 844})
@@ -135,6 +143,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=ROOT / "docs" / "img")
     args = parser.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
     rng = random.Random(0)
     with tempfile.TemporaryDirectory() as work:
         tetris(args.out, Path(work), rng)

@@ -20,6 +20,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -116,6 +117,7 @@ def _url(proc: subprocess.Popen, timeout: float = 120) -> str:
     while time.time() < deadline:
         line = proc.stderr.readline()
         if "Teach the agent in your browser:" in line:
+            threading.Thread(target=proc.stderr.read, daemon=True).start()  # a full pipe would block the run
             return line.split("browser:", 1)[1].strip()
         if not line and proc.poll() is not None:
             break
@@ -240,6 +242,12 @@ def test_tetris_presses_are_filed_and_counted_as_saved_through_reconnects_and_fi
         summary = page.inner_text("#summary")
         assert "You finished the session" in summary and f"{len(presses)} presses counted" in summary
         assert f"resume={run_dir}" in page.inner_text("#summary-resume")
+        saved = page.inner_text("#summary-saved")
+        assert f"Checkpoint: {run_dir / 'checkpoints' / 'last.pt'}" in saved
+        assert f"Your presses: {run_dir / 'feedback.jsonl'}" in saved
+        points = page.evaluate("S.ended.curve")  # the agent's curve, rounds with the person filled
+        change = page.inner_text("#summary-change")
+        assert any(p[2] >= 0.5 for p in points) and "lines per test game. With you (filled)" in change
         assert page.locator("#summary-list li").count() == len(presses)
         _fits(page, 390)
         assert proc.wait(timeout=60) == 0
