@@ -11,6 +11,7 @@ directory. Needs Debian's chromium and the ``playwright`` package.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import random
 import shutil
 import signal
@@ -22,6 +23,7 @@ import time
 from pathlib import Path
 
 from PIL import Image
+from playwright.sync_api import Error as PlaywrightError
 from playwright.sync_api import Page, sync_playwright
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -61,13 +63,15 @@ def _shot(page: Page, path: Path) -> None:
     """The page as it is, stamped, in 128 colours (a small PNG)."""
     page.evaluate(STAMP)
     page.screenshot(path=str(path))
-    Image.open(path).convert("RGB").quantize(colors=128).save(path, optimize=True)
+    image = Image.open(path).convert("RGB").quantize(colors=128, method=Image.Quantize.FASTOCTREE)
+    image.save(path, optimize=True)
     print("wrote", path, path.stat().st_size, "bytes")
 
 
-def _teach_tetris(page: Page, seconds: float, rng: random.Random) -> None:
-    """Judge placements by the fixed rule for ``seconds``, reacting 0.4-0.7 s after each frame."""
-    end, seen, holes = time.monotonic() + seconds, -1, 0
+def _teach_tetris(page: Page, seconds: float, rng: random.Random, filed: list[bool]) -> None:
+    """Judge placements by the fixed rule for ``seconds``, reacting 0.4-0.7 s after each frame; appends to
+    ``filed`` whether each press was filed under the placement it judged (as the page is told)."""
+    end, seen, holes = time.monotonic() + seconds, (-1, -1), 0
     while time.monotonic() < end:
         frame = page.evaluate("S.frame")
         if frame and frame.get("placement") is not None and (frame["game"], frame["placement"]) != seen:
@@ -77,7 +81,14 @@ def _teach_tetris(page: Page, seconds: float, rng: random.Random) -> None:
             holes = now
             time.sleep(rng.uniform(0.4, 0.7))
             if not page.locator("#good").is_disabled():
+                given = page.inner_text("#given")
                 page.keyboard.press(key)
+                with contextlib.suppress(PlaywrightError):  # not taken (the game ended): no count
+                    page.wait_for_function(
+                        f"document.getElementById('given').textContent !== '{given}'", timeout=2000
+                    )
+                    said = page.inner_text("#last-press")
+                    filed.append(f"(placement {seen[1]} of game {seen[0]})" in said)
         time.sleep(0.05)
 
 
@@ -85,6 +96,7 @@ def tetris(out: Path, work: Path, rng: random.Random) -> None:
     overrides = ["trainer.wait_for_page_s=0", "agent.iterations=300", "agent.population=30"]
     overrides += ["agent.games_per_candidate=3", "agent.eval_games=10", "agent.watch_pieces=80"]
     proc, url = _train(work / "tetris", *overrides)
+    filed: list[bool] = []
     try:
         time.sleep(1.5)  # it practises alone first, at full speed: hollow points on the curve
         with sync_playwright() as p:
@@ -92,7 +104,7 @@ def tetris(out: Path, work: Path, rng: random.Random) -> None:
             page = browser.new_page(viewport={"width": 1280, "height": 900})
             page.goto(url)
             page.wait_for_function("!document.getElementById('good').disabled", timeout=120_000)
-            _teach_tetris(page, 40, rng)
+            _teach_tetris(page, 40, rng, filed)
             page.wait_for_function("S.frame && S.frame.cleared > 0", timeout=120_000, polling=20)
             page.wait_for_timeout(100)  # the cleared rows glow
             _shot(page, out / "browser_trainer.png")
@@ -102,12 +114,13 @@ def tetris(out: Path, work: Path, rng: random.Random) -> None:
             _shot(page, out / "browser_trainer_away.png")
             page.keyboard.press("h")
             page.wait_for_function("!document.getElementById('good').disabled", timeout=120_000)
-            _teach_tetris(page, 15, rng)
+            _teach_tetris(page, 15, rng, filed)
             page.click("#finish")
             page.wait_for_selector("#summary", state="visible", timeout=120_000)
             _shot(page, out / "browser_trainer_summary.png")
             browser.close()
         proc.wait(timeout=60)
+        print(f"Tetris: {sum(filed)} of {len(filed)} presses filed under the placement the script judged")
     finally:
         if proc.poll() is None:
             proc.kill()
