@@ -21,6 +21,7 @@ from hfrl_torch.experiment.cli import CONF_DIR
 from hfrl_torch.experiment.config import check_interactive
 from hfrl_torch.feedback.log import FeedbackLog, load_feedback_log
 from hfrl_torch.interactive.live import LiveTeaching
+from hfrl_torch.interactive.messages import Finish
 from hfrl_torch.interactive.server import TeachingServer, is_loopback, split_authority
 from hfrl_torch.interactive.session import TeachingSession
 from hfrl_torch.trainers.queue_trainer import QueueTrainer
@@ -478,3 +479,25 @@ def test_nothing_is_lost_or_duplicated_when_a_page_drops_and_reconnects(tmp_path
     assert 10 <= count <= 30 and session.taken == count + 10 and len(events) == count + 10
     assert [e.value for e in events] == [float(v) for v in sent[:count] + sent[30:]]
     assert len({e.id for e in events}) == len(events)
+
+
+def test_the_end_names_why_the_run_ended_and_how_to_continue_it(tmp_path, monkeypatch):
+    session = TeachingSession()
+    teaching = LiveTeaching(TeachingServer(session, port=0), session, QueueTrainer(session.queue))
+    ended: list[tuple[str, dict]] = []
+    monkeypatch.setattr(teaching, "stop", lambda reason, saved: ended.append((reason, saved)) or 0)
+    teaching.end(True, tmp_path, "agent.iterations", 50)  # the budget is spent
+    teaching.end(False, tmp_path, "agent.iterations", 50)  # Ctrl-C
+    try:
+        raise RuntimeError("the loop failed")
+    except RuntimeError:  # as in the run loop's ``finally`` with an exception on its way out
+        teaching.end(False, tmp_path, "agent.iterations", 50)
+    session.apply(Finish())
+    teaching.end(False, tmp_path, "agent.iterations", 50)
+    assert [reason for reason, _ in ended] == ["finished", "stopped", "failed", "finished_by_you"]
+    assert ended[0][1]["resume"] == f"python train.py resume={tmp_path} agent.iterations=50"
+    assert {saved["resume"] for _, saved in ended[1:]} == {f"python train.py resume={tmp_path}"}
+    assert ended[0][1]["checkpoint"] is None  # none written yet: the page says so
+    assert ended[0][1]["feedback_log"] == str(tmp_path / "feedback.jsonl")
+    with pytest.raises(ValueError, match="reason='done' is invalid; allowed: finished, finished_by_you"):
+        LiveTeaching(TeachingServer(session, port=0), session, QueueTrainer(session.queue)).stop("done")
