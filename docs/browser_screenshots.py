@@ -36,6 +36,27 @@ STAMP = """() => {
     font: "12px system-ui, sans-serif", padding: "3px 8px", zIndex: 99 });
   document.body.appendChild(d);
 }"""
+# when each placement reached the page, and when each key went down (page clock)
+RECORD = """
+window.__arrived = {};
+window.__keys = [];
+document.addEventListener("keydown", () => window.__keys.push(performance.now()), true);
+const PageSocket = window.WebSocket;
+window.WebSocket = class extends PageSocket {
+  constructor(...args) {
+    super(...args);
+    this.addEventListener("message", (e) => {
+      const m = JSON.parse(e.data);
+      if (m.type === "tetris") window.__arrived[`${m.game}:${m.placement}`] = performance.now();
+    });
+  }
+};
+"""
+# resolves true at ``delay`` s after ``arrived`` (false, at once, if that moment has passed)
+REACT = """([arrived, delay]) => new Promise((resolve) => {
+  const wait = arrived + delay * 1000 - performance.now();
+  if (wait < 0) resolve(false); else setTimeout(() => resolve(true), wait);
+})"""
 HOLES = """(board) => {
   let holes = 0;
   for (let c = 0; c < board[0].length; c++) {
@@ -68,9 +89,11 @@ def _shot(page: Page, path: Path) -> None:
     print("wrote", path, path.stat().st_size, "bytes")
 
 
-def _teach_tetris(page: Page, seconds: float, rng: random.Random, filed: list[bool]) -> None:
-    """Judge placements by the fixed rule for ``seconds``, reacting 0.4-0.7 s after each frame; appends to
-    ``filed`` whether each press was filed under the placement it judged (as the page is told)."""
+def _teach_tetris(page: Page, seconds: float, rng: random.Random, filed: list[tuple[float, bool]]) -> None:
+    """Judge placements by the fixed rule for ``seconds``, pressing 0.4-0.7 s after each placement reached
+    the page (a placement noticed too late for that is let go); appends to ``filed`` each press's delay
+    after its placement reached the page and whether it was filed under that placement (as the page is
+    told)."""
     end, seen, holes = time.monotonic() + seconds, (-1, -1), 0
     while time.monotonic() < end:
         frame = page.evaluate("S.frame")
@@ -79,29 +102,33 @@ def _teach_tetris(page: Page, seconds: float, rng: random.Random, filed: list[bo
             now = page.evaluate(HOLES, frame["board"])
             key = "/" if frame["cleared"] or now <= holes else "z"
             holes = now
-            time.sleep(rng.uniform(0.4, 0.7))
+            arrived = page.evaluate(f"window.__arrived['{seen[0]}:{seen[1]}']")
+            if arrived is None or not page.evaluate(REACT, [arrived, rng.uniform(0.4, 0.7)]):
+                continue
             if not page.locator("#good").is_disabled():
                 given = page.inner_text("#given")
                 page.keyboard.press(key)
+                delay = (page.evaluate("window.__keys[window.__keys.length - 1]") - arrived) / 1000
                 with contextlib.suppress(PlaywrightError):  # not taken (the game ended): no count
                     page.wait_for_function(
                         f"document.getElementById('given').textContent !== '{given}'", timeout=2000
                     )
                     said = page.inner_text("#last-press")
-                    filed.append(f"(placement {seen[1]} of game {seen[0]})" in said)
-        time.sleep(0.05)
+                    filed.append((delay, f"(placement {seen[1]} of game {seen[0]})" in said))
+        time.sleep(0.02)
 
 
 def tetris(out: Path, work: Path, rng: random.Random) -> None:
     overrides = ["trainer.wait_for_page_s=0", "agent.iterations=300", "agent.population=30"]
     overrides += ["agent.games_per_candidate=3", "agent.eval_games=10", "agent.watch_pieces=80"]
     proc, url = _train(work / "tetris", *overrides)
-    filed: list[bool] = []
+    filed: list[tuple[float, bool]] = []
     try:
         time.sleep(1.5)  # it practises alone first, at full speed: hollow points on the curve
         with sync_playwright() as p:
             browser = p.chromium.launch(executable_path=CHROMIUM, args=["--headless", "--no-sandbox"])
             page = browser.new_page(viewport={"width": 1280, "height": 900})
+            page.add_init_script(RECORD)
             page.goto(url)
             page.wait_for_function("!document.getElementById('good').disabled", timeout=120_000)
             _teach_tetris(page, 40, rng, filed)
@@ -120,7 +147,12 @@ def tetris(out: Path, work: Path, rng: random.Random) -> None:
             _shot(page, out / "browser_trainer_summary.png")
             browser.close()
         proc.wait(timeout=60)
-        print(f"Tetris: {sum(filed)} of {len(filed)} presses filed under the placement the script judged")
+        right = sum(ok for _, ok in filed)
+        delays = sorted(d for d, _ in filed)
+        print(
+            f"Tetris: {right} of {len(filed)} presses filed under the placement the script judged; "
+            f"press delay after the placement reached the page {delays[0]:.2f}..{delays[-1]:.2f} s"
+        )
     finally:
         if proc.poll() is None:
             proc.kill()
