@@ -3,9 +3,10 @@
     python docs/browser_screenshots.py [--out docs/img]
 
 Nothing here is a person: a script presses the keys, by a fixed rule (Tetris: Good for a placement that
-clears a line or adds no hole, Bad for one that adds holes; keepaway: Good and Bad in turn), about half a
-second after each frame, and every image is stamped as a scripted browser's. The runs go to a temporary
-directory. Needs Debian's chromium and the ``playwright`` package.
+clears a line or adds no hole, Bad for one that adds holes, 0.4-0.7 s after the placement reached the
+page; keepaway: Good and Bad in turn, 1-2.5 s apart), and every image is stamped as a scripted browser's.
+It prints how many Tetris presses were filed under the placement they judged. The runs go to a temporary
+directory; about 2.5 minutes. Needs Debian's chromium and the ``playwright`` package (the test extra).
 """
 
 from __future__ import annotations
