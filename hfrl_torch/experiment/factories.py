@@ -36,10 +36,12 @@ from hfrl_torch.fusion.schedules import (
     WeightSchedule,
 )
 from hfrl_torch.fusion.schemes import OPTIONS
+from hfrl_torch.interactive.explain import WEIGHT_NAME, weight_sentence
 from hfrl_torch.interactive.keepaway_live import BrowserKeeperTrainer
 from hfrl_torch.interactive.live import DEFAULT_SPEED, KEY_NAMES, LiveTeaching
 from hfrl_torch.interactive.server import TeachingServer
 from hfrl_torch.interactive.session import TeachingSession
+from hfrl_torch.interactive.tetris_live import BrowserTetrisTrainer
 from hfrl_torch.models.tile_coding import TileCoding
 from hfrl_torch.trainers import HumanLikeTiming, OracleTrainer, ReplayTrainer, Trainer, ValueProxyTrainer
 from hfrl_torch.trainers.departure import Departure
@@ -270,10 +272,24 @@ def make_keeper_trainer(
 
 
 def make_live_teaching(cfg: DictConfig, log: FeedbackLog, view: str) -> LiveTeaching:
-    """The browser trainer's page server for ``view`` (tetris or keepaway), started."""
+    """The browser trainer's page server for ``view`` (tetris or keepaway), started; Tetris presses are
+    drained by a ``BrowserTetrisTrainer`` (keepaway's trainer is ``make_keeper_trainer``'s)."""
     t = cfg.trainer
     speed = DEFAULT_SPEED[view] if t.actions_per_s is None else float(t.actions_per_s)
     session = TeachingSession(actions_per_s=speed)
+    f = cfg.fusion
+    fixed = OmegaConf.select(cfg, "fusion.weight")  # a number: a fixed weight or an annealed one's start
+    session.info = {
+        "weight_name": WEIGHT_NAME,
+        "weight_sentence": weight_sentence(
+            str(f.name),
+            make_weight_schedule(cfg).kind,
+            view,
+            value=float(fixed) if isinstance(fixed, (int, float)) and not isinstance(fixed, bool) else None,
+            factor=OmegaConf.select(cfg, "fusion.factor"),
+            arms=list(f.adaptive.arms) if "adaptive" in f else None,
+        ),
+    }
     server = TeachingServer(
         session,
         host=t.host,
@@ -286,7 +302,8 @@ def make_live_teaching(cfg: DictConfig, log: FeedbackLog, view: str) -> LiveTeac
         max_teachers=int(t.max_teachers),
         max_connections=int(t.max_connections),
     )
-    return LiveTeaching.start(server, session, QueueTrainer(session.queue, log=log))
+    trainer = BrowserTetrisTrainer(session, log) if view == "tetris" else QueueTrainer(session.queue, log=log)
+    return LiveTeaching.start(server, session, trainer)
 
 
 # ------------------------------------------------------------------------------ fusion

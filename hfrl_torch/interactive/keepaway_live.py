@@ -8,18 +8,18 @@ One person watches one field: the run has one learner (``agent.learners=1``, the
   speed while the person teaches, and adds the hold times to the page's learning curve. It hooks the
   simulator's ``step`` (one call per cycle) because an env step runs many cycles, and a pass shown only
   at its start and end would be impossible to judge.
-* :class:`ScreenTimeline` remembers when each frame was shown (wall clock) and which simulated moment it
-  showed.
+* the session's ``ScreenTimeline`` (``timeline.py``) remembers when each frame was shown (wall clock),
+  which simulated moment it showed and what a press on it judges.
 * :class:`BrowserKeeperTrainer`, the keepers' trainer, turns the presses into events on the field's
   simulated clock, where H^ credits them.
 
 **Time.** H^ credits feedback on the field's simulated clock (seconds, 10 cycles each), while a press is
 stamped with the wall clock. A press at wall time w is credited at ``min(S(w - r) + r, now)``, where
-S(w') is the simulated time of the frame on screen at w', r = 0.3 s a typical reaction delay (near the
-mode of the gamma(2.0, 0.28) credit density) and ``now`` the field's clock when the event is read. At real
-time this is S(w), what was on screen at the press. At other speeds, or after a pause, the credit still
-centres on what the person saw about r seconds before pressing: the person's reaction delay is not
-stretched or squeezed by the speed.
+S(w') is the simulated time of the frame on screen at w', r = 0.3 s the reaction allowance of both domains
+(``timeline.REACTION_S``, near the mode of the gamma(2.0, 0.28) credit density) and ``now`` the field's
+clock when the event is read. At real time this is S(w), what was on screen at the press. At other
+speeds, or after a pause, the credit still centres on what the person saw about r seconds before
+pressing: the person's reaction delay is not stretched or squeezed by the speed.
 
 **Speed.** The page's speed is in decision periods per wall second: one period is
 ``domain.decision_period_cycles`` cycles (5 when a trainer watches: the thesis's 500 ms). So 2 is real
@@ -27,7 +27,8 @@ time (10 cycles a second), which is the default, 0.5 a quarter of it and 20 ten 
 
 **Nobody watching.** With the page closed, or "I'm away", the loop runs at full speed from the
 environment alone (the H^ learned so far still counts in the fusion), and an open page gets a frame about
-five times a second. Opening the page, or "I'm here", brings back the pacing and the teaching.
+five times a second, covered by a notice of how much simulated time is left and about how long that takes
+at the current pace. Opening the page, or "I'm here", brings back the pacing and the teaching.
 """
 
 from __future__ import annotations
@@ -35,8 +36,7 @@ from __future__ import annotations
 import math
 import sys
 from collections import deque
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import torch
@@ -53,52 +53,15 @@ from hfrl_torch.envs.keepaway.simulator import KeepawaySimulator, KeepawayState
 from hfrl_torch.feedback.events import FeedbackEvent, FeedbackQueue
 from hfrl_torch.feedback.log import FeedbackLog
 from hfrl_torch.interactive.session import SOURCE, TeachingSession
+from hfrl_torch.interactive.timeline import ScreenTimeline, credit_time
 
 if TYPE_CHECKING:
     from hfrl_torch.interactive.live import LiveTeaching
 
 CYCLES_PER_SECOND = 10
-REACTION_S = 0.3
 UNPACED_FRAME_S = 0.2  # wall seconds between frames while nobody teaches
 RECENT_EPISODES = 10  # episodes in the page's mean hold time
-
-
-@dataclass(frozen=True)
-class Shown:
-    """One frame on the page: when it was shown (wall clock), the simulated time of its state, the episode
-    and the decision of that episode it showed (-1: before the first)."""
-
-    wall: float
-    sim: float
-    episode: int
-    step: int
-
-
-class ScreenTimeline:
-    """What the page showed when: the last ``size`` frames, oldest first (written and read by the loop)."""
-
-    def __init__(self, size: int = 1000) -> None:
-        if size < 1:
-            raise ValueError(f"ScreenTimeline size must be >= 1, got {size!r}")
-        self._shown: deque[Shown] = deque(maxlen=size)
-
-    def shown(self, wall: float, sim: float, episode: int, step: int) -> None:
-        """Record a frame shown at ``wall`` of the state at simulated time ``sim``."""
-        self._shown.append(Shown(float(wall), float(sim), int(episode), int(step)))
-
-    def at(self, wall: float) -> Shown | None:
-        """The frame on screen at ``wall``: the last shown at or before it (the oldest kept if ``wall`` is
-        older; None if nothing was shown yet)."""
-        for shown in reversed(self._shown):
-            if shown.wall <= wall:
-                return shown
-        return self._shown[0] if self._shown else None
-
-    def __iter__(self) -> Iterator[Shown]:
-        return iter(self._shown)
-
-    def __len__(self) -> int:
-        return len(self._shown)
+PROGRESS_S = 1.0  # wall seconds between the page's updates of what is left
 
 
 class BrowserKeeperTrainer:
@@ -113,9 +76,10 @@ class BrowserKeeperTrainer:
         wall clock).
     :param fields: B, the fields of the run (the person watches ``field``; the others get nothing).
     :param log: the feedback log every event goes to, with its simulated time and the run's session.
-    :param timeline: what the page showed when (the watcher writes it).
-    :param reaction_s: r, the reaction delay the mapping centres the credit on (seconds).
     :param field: the watched field.
+
+    What the page showed when is the session's timeline (the watcher writes it), and r its
+    ``reaction_s``: the filing the page is told in a press's acknowledgement is the one credited here.
     """
 
     source = SOURCE
@@ -125,20 +89,15 @@ class BrowserKeeperTrainer:
         session: TeachingSession,
         fields: int = 1,
         log: FeedbackLog | None = None,
-        timeline: ScreenTimeline | None = None,
-        reaction_s: float = REACTION_S,
         field: int = 0,
     ) -> None:
         if not 0 <= field < fields:
             raise ValueError(f"BrowserKeeperTrainer field={field} is not one of the run's {fields} fields")
-        if not reaction_s >= 0:
-            raise ValueError(f"BrowserKeeperTrainer reaction_s must be >= 0 seconds, got {reaction_s!r}")
         self.session = session
         self.queue: FeedbackQueue = session.queue
         self.fields, self.field = fields, field
         self.log = log
-        self.timeline = ScreenTimeline() if timeline is None else timeline
-        self.reaction_s = float(reaction_s)
+        self.timeline: ScreenTimeline = session.timeline
         self.waiting: deque[FeedbackEvent] = deque()
         self.given = 0
         self.positive = 0
@@ -155,19 +114,19 @@ class BrowserKeeperTrainer:
         b = action.shape[0]
         return torch.zeros(b, dtype=torch.float64), torch.zeros(b, dtype=torch.float64)
 
-    def credit_time(self, wall: float, now: float) -> tuple[float, int, int]:
-        """The simulated time a press at ``wall`` is credited at, given the field's clock ``now``, and the
-        episode and decision then on screen (-1 when nothing was shown yet)."""
-        seen = self.timeline.at(wall - self.reaction_s)
+    def credit_time(self, event: FeedbackEvent, now: float) -> tuple[float, int, int]:
+        """The simulated time a press is credited at, given the field's clock ``now``, and the episode and
+        decision of the frame it is filed under (``session.filed``; -1 when nothing was shown yet)."""
+        seen, _ = self.session.filed(event)
         if seen is None:
             return now, -1, -1
-        return min(seen.sim + self.reaction_s, now), seen.episode, seen.step
+        return credit_time(seen, None, self.session.reaction_s, now), seen.episode, seen.step
 
     def _credited(self, pressed: list[FeedbackEvent], now: float) -> list[FeedbackEvent]:
         """The presses placed on the field's clock (``now``: its time), logged."""
         credited = []
         for ev in pressed:
-            t, episode, step = self.credit_time(ev.time, now)
+            t, episode, step = self.credit_time(ev, now)
             credited.append(
                 FeedbackEvent(time=t, value=ev.value, source=ev.source, step=step, episode=episode)
             )
@@ -217,12 +176,14 @@ class KeepawayWatcher:
     every env step's tensordict (episode ends).
 
     :param trainer: the browser trainer; the watcher uses its session (speed, pause, presence, frames,
-        curve) and writes its timeline.
+        curve, timeline).
     :param records: the run's records (the field's clock, episode and decisions).
     :param config: the task (region, decision period).
     :param weight: the watched learner's current weight on H^, for the page (None: not shown).
     :param curve_every: episodes per point of the page's learning curve (mean hold time).
     :param frame_s: wall seconds between frames while nobody teaches.
+    :param budget_s: the run's budget in simulated seconds per learner (None: a budget of episodes).
+    :param budget_episodes: the run's budget in episodes (0: none).
     """
 
     def __init__(
@@ -233,6 +194,8 @@ class KeepawayWatcher:
         weight: Callable[[], float] | None = None,
         curve_every: int = 10,
         frame_s: float = UNPACED_FRAME_S,
+        budget_s: float | None = None,
+        budget_episodes: int = 0,
     ) -> None:
         if curve_every < 1:
             raise ValueError(f"KeepawayWatcher curve_every must be >= 1, got {curve_every!r}")
@@ -240,13 +203,18 @@ class KeepawayWatcher:
         self.config, self.weight = config, weight
         self.field = trainer.field
         self.curve_every, self.frame_s = curve_every, frame_s
+        self.budget_s, self.budget_episodes = budget_s, int(budget_episodes)
         self.cycle_share = 1.0 / config.decision_period_cycles  # of one paced "action"
         self.recent: deque[float] = deque(maxlen=RECENT_EPISODES)
         self.block: list[float] = []
+        self.block_cycles = self.block_taught = 0  # cycles of the curve's block so far, and those taught
         self.action = "-"
         self.target = -1
         self.frames = 0
         self._last_frame = -math.inf
+        self._progress_at: tuple[float, float] | None = None  # (wall, simulated s) of the last update
+        self._decided: tuple[int, int] | None = None  # (episode, decision) of the last decision shown
+        self.session.set_live(False)  # nothing to judge before the first frame
 
     @property
     def real_time_speed(self) -> float:
@@ -266,6 +234,7 @@ class KeepawayWatcher:
 
     def cycle(self, state: KeepawayState) -> None:
         """After a simulator cycle: wait for its turn while a person teaches, then show it."""
+        self.block_cycles += 1
         if self.session.clients == 0:
             return
         f = self.field
@@ -280,7 +249,8 @@ class KeepawayWatcher:
             )
         teaching = self.session.teaching()
         if teaching:
-            wall = self.session.wait_turn(self.cycle_share)
+            self.block_taught += 1
+            self.session.wait_turn(self.cycle_share)
         else:
             wall = self.session.clock()
             if wall - self._last_frame < self.frame_s:
@@ -288,10 +258,47 @@ class KeepawayWatcher:
         sim = (int(self.records.finished_cycles[f]) + cycles) / CYCLES_PER_SECOND
         episode = int(self.records.episodes[f])
         step = int(self.records.decisions[f].sum()) - 1
-        self.session.publish(self.frame(state, teaching))
-        self.trainer.timeline.shown(wall, sim, episode, step)
-        self._last_frame = wall
+        frame = self.frame(state, teaching)
+        self.session.publish(frame)
+        if step >= 0:
+            self._decided = (episode, step)
+            label = f"{self.action} (episode {episode + 1}, {frame['time_s']:.1f} s)"
+        elif self._decided is not None:  # before an episode's first decision: the credit goes to the last
+            episode, step = self._decided  # decisions of the episode before
+            label = f"the end of episode {episode + 1}"
+        else:
+            label = ""  # nothing decided yet: nothing to judge
+        self._last_frame = self.session.shown(sim, episode, step, label)
+        if self.frames == 0:
+            self.session.set_live(True)
         self.frames += 1
+        self._progress()
+
+    def _progress(self) -> None:
+        """Tell the page what is left of the run, about once a second: simulated time (or episodes) and
+        the wall time that takes at the pace of the last second."""
+        wall, f = self.session.clock(), self.field
+        sim = int(self.records.learner_clock[f]) / CYCLES_PER_SECOND
+        if self._progress_at is not None and wall - self._progress_at[0] < PROGRESS_S:
+            return
+        rate = None
+        if self._progress_at is not None and wall > self._progress_at[0]:
+            rate = (sim - self._progress_at[1]) / (wall - self._progress_at[0])
+        self._progress_at = (wall, sim)
+        if self.budget_s:
+            left = max(self.budget_s - sim, 0.0)
+            left_s = left / rate if rate else None
+            self.session.set_progress(
+                unit="simulated s", done=sim, total=self.budget_s, left=left, left_s=left_s
+            )
+        elif self.budget_episodes:
+            done = int(self.records.episodes[f])
+            self.session.set_progress(
+                unit="episodes",
+                done=done,
+                total=self.budget_episodes,
+                left=max(self.budget_episodes - done, 0),
+            )
 
     def frame(self, state: KeepawayState, teaching: bool = True) -> dict[str, Any]:
         """What the page draws of the watched field now (JSON-able)."""
@@ -301,16 +308,9 @@ class KeepawayWatcher:
         dist = [math.dist(k, ball) for k in keepers]
         nearest = min(range(n), key=dist.__getitem__)
         holder = nearest if dist[nearest] <= c.physics.kickable_distance else -1
-        weight = None if self.weight is None else float(self.weight())
-        if not teaching:
-            text = "you're away: the keepers learn on their own at full speed"
-        elif self.session.paused:
-            text = "paused"
-        else:
-            trust = "" if weight is None else f" (trust in your feedback: {weight:.2f})"
-            text = f"watching you teach{trust}"
         return {
             "type": "keepaway",
+            "phase": "watch" if teaching else "away",
             "region": [c.length, c.width],
             "keepers": [_round(p) for p in keepers],
             "takers": [_round(p) for p in takers],
@@ -321,14 +321,13 @@ class KeepawayWatcher:
             "episode": int(self.records.episodes[f]) + 1,
             "time_s": int(state.episode_cycles[f]) / CYCLES_PER_SECOND,
             "mean_hold_s": sum(self.recent) / len(self.recent) if self.recent else None,
-            "weight": weight,
+            "weight": None if self.weight is None else float(self.weight()),
             "real_time": self.real_time_speed,
-            "text": text,
         }
 
     def __call__(self, td: TensorDictBase) -> None:
         """After an env step: the hold time of an episode that ended, and a point of the curve every
-        ``curve_every`` episodes."""
+        ``curve_every`` episodes (marked with the share of its cycles the person taught)."""
         after = td["next"]
         f = self.field
         if not bool(after[keys.DONE].reshape(-1)[f]):
@@ -338,8 +337,12 @@ class KeepawayWatcher:
         self.recent.append(seconds)
         self.block.append(seconds)
         if len(self.block) >= self.curve_every:
-            self.session.add_point(int(self.records.episodes[f]) + 1, sum(self.block) / len(self.block))
+            taught = self.block_taught / self.block_cycles if self.block_cycles else 0.0
+            self.session.add_point(
+                int(self.records.episodes[f]) + 1, sum(self.block) / len(self.block), taught
+            )
             self.block.clear()
+            self.block_cycles = self.block_taught = 0
 
 
 def wait_for_teacher(cfg: DictConfig, teaching: LiveTeaching) -> None:

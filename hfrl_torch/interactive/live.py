@@ -2,17 +2,23 @@
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
+from hfrl_torch.common.checkpoint import LAST
 from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.interactive.server import TeachingServer
 from hfrl_torch.interactive.session import TeachingSession
 from hfrl_torch.trainers.queue_trainer import QueueTrainer
 
 KEY_NAMES = ("good", "bad", "pause", "presence")
-# the starting speed when trainer.actions_per_s is null: Tetris placements per second (the thesis's tools:
-# 5-7), keepaway decision periods per second (2 = real time at the 500 ms decisions of a taught run)
-DEFAULT_SPEED = {"tetris": 5.0, "keepaway": 2.0}
+# the starting speed when trainer.actions_per_s is null: Tetris placements per second (1.5: a placement
+# every 0.67 s, so that a press 0.3-1.0 s after a placement is filed under it; docs/browser.md), keepaway
+# decision periods per second (2 = real time at the 500 ms decisions of a taught run)
+DEFAULT_SPEED = {"tetris": 1.5, "keepaway": 2.0}
+REASONS = ("finished", "finished_by_you", "stopped", "failed")
 
 
 @dataclass
@@ -36,11 +42,33 @@ class LiveTeaching:
     def url(self) -> str:
         return self.server.url
 
-    def stop(self) -> int:
-        """Stop the server (its pages closed first, so no press is acknowledged after), close the queue,
-        and write every press still in it to the feedback log, so that each press a page was told was
-        taken is in the log. Returns how many were written; idempotent. Call it before closing the log."""
-        self.server.stop()
+    @property
+    def finish_requested(self) -> bool:
+        """Whether the page asked to finish and save (the run then ends after its chunk)."""
+        return self.session.ending == "finishing"
+
+    def end(self, done: bool, run_dir: Path, budget: str, more: float) -> int:
+        """Stop, telling the pages why (``done``: the budget is spent; else finished from the page, failed
+        with an exception on its way out, or stopped from the terminal) and where the run is saved;
+        ``budget`` and ``more``: the setting and value that continue a finished run (e.g.
+        ``agent.iterations``, 100). Call it from the learner's ``close``. Returns :meth:`stop`'s count."""
+        error = sys.exc_info()[1]  # an exception on its way through the run loop's ``finally``
+        if isinstance(error, Exception):
+            reason = "failed"
+        else:
+            reason = "finished" if done else "finished_by_you" if self.finish_requested else "stopped"
+        return self.stop(reason, saved_run(run_dir, budget if done else None, more))
+
+    def stop(self, reason: str = "stopped", saved: dict[str, Any] | None = None) -> int:
+        """Stop the server: it takes no more messages, tells every page that the run ``reason`` (one of
+        :data:`REASONS`) with the session's summary and ``saved`` (where the run is, how to continue it),
+        and closes them. Then close the queue and write every press still in it to the feedback log, so
+        that each press a page was told was taken is in the log. Returns how many were written;
+        idempotent. Call it before closing the log."""
+        if reason not in REASONS:
+            raise ValueError(f"LiveTeaching.stop reason={reason!r} is invalid; allowed: {', '.join(REASONS)}")
+        self.session.ending = self.session.ending or "stopping"  # no more pacing, no press taken
+        self.server.stop(final=lambda: self.session.summary(reason, saved))
         queue = self.session.queue
         queue.close()
         left = queue.drain()
@@ -51,3 +79,15 @@ class LiveTeaching:
         elif self.trainer.log is not None:
             self.trainer.log.extend([self.trainer.label(ev) for ev in left])
         return len(left)
+
+
+def saved_run(run_dir: Path, budget: str | None = None, more: float = 0) -> dict[str, Any]:
+    """Where a run is saved and the command that continues it (with ``budget=more`` when given)."""
+    checkpoint = run_dir / "checkpoints" / LAST
+    extra = f" {budget}={more:g}" if budget else ""
+    return {
+        "run_dir": str(run_dir),
+        "checkpoint": str(checkpoint) if checkpoint.exists() else None,
+        "feedback_log": str(run_dir / "feedback.jsonl"),
+        "resume": f"python train.py resume={run_dir}{extra}",
+    }

@@ -1,8 +1,10 @@
 """What the page may send, checked before anything acts on it: type, fields, value ranges, size.
 
-A message is one JSON object per WebSocket text frame. Anything else (binary frames, oversized frames,
-bad JSON, JSON nested deeper than :data:`MAX_DEPTH`, integers of more than :data:`MAX_INT_DIGITS` digits,
-NaN/Infinity, unknown types, wrong types, missing or extra fields, out-of-range values) raises
+A message is one JSON object per WebSocket text frame: ``feedback`` (a press, numbered by the page),
+``speed``, ``pause``, ``presence`` (here or away) or ``finish`` (end and save the run). Anything else
+(binary frames, oversized frames, bad JSON, JSON nested deeper than :data:`MAX_DEPTH`, integers of more
+than :data:`MAX_INT_DIGITS` digits, NaN/Infinity, unknown types, wrong types, missing or extra fields,
+out-of-range values) raises
 ``MessageError`` with one line naming the bad value (shortened) and what is allowed; the server counts it,
 answers with an error message and goes on. Nothing in here raises anything else, whatever the text.
 """
@@ -26,11 +28,16 @@ class MessageError(ValueError):
     """A message from the page that is rejected (the text says why, in one line)."""
 
 
+MAX_PRESS_ID = 999_999  # the page numbers its presses 0, 1, 2... (wrapping) so acks name the press
+
+
 @dataclass(frozen=True)
 class Feedback:
-    """The person pressed good (+1) or bad (-1)."""
+    """The person pressed good (+1) or bad (-1); ``id`` is the page's number of the press (-1: none), sent
+    back in the acknowledgement so that the page counts exactly the presses the run took."""
 
     value: float
+    id: int = -1
 
 
 @dataclass(frozen=True)
@@ -54,14 +61,21 @@ class Presence:
     here: bool
 
 
-Message = Feedback | Speed | Pause | Presence
+@dataclass(frozen=True)
+class Finish:
+    """The person asks to end the run now and save it ("Finish and save")."""
+
+
+Message = Feedback | Speed | Pause | Presence | Finish
 
 _FIELDS: dict[str, tuple[str, ...]] = {
     "feedback": ("value",),
     "speed": ("actions_per_s",),
     "pause": ("paused",),
     "presence": ("here",),
+    "finish": (),
 }
+_OPTIONAL: dict[str, tuple[str, ...]] = {"feedback": ("id",)}
 
 
 def shown(value: object, limit: int = 40) -> str:
@@ -103,14 +117,21 @@ def parse_message(raw: str | bytes, max_bytes: int = 1024) -> Message:
     if not isinstance(kind, str) or kind not in _FIELDS:
         raise MessageError(f"type={shown(kind)} is invalid; allowed: {', '.join(_FIELDS)}")
     expected = {"type", *_FIELDS[kind]}
-    if set(obj) != expected:
+    optional = set(_OPTIONAL.get(kind, ()))
+    if not expected <= set(obj) <= expected | optional:
         fields = shown(sorted(obj), 80)
-        raise MessageError(f"a {kind} message has fields {fields}; allowed: exactly {sorted(expected)}")
+        allowed = f"exactly {sorted(expected)}" + (f" and optionally {sorted(optional)}" if optional else "")
+        raise MessageError(f"a {kind} message has fields {fields}; allowed: {allowed}")
     if kind == "feedback":
         value = _number(obj, "value")
         if value not in (1.0, -1.0):
             raise MessageError(f"value={shown(obj['value'])} is invalid; allowed: 1 (good) or -1 (bad)")
-        return Feedback(value)
+        press = obj.get("id", -1)
+        if isinstance(press, bool) or not isinstance(press, int) or not -1 <= press <= MAX_PRESS_ID:
+            raise MessageError(f"id={shown(press)} is invalid; allowed: an integer 0..{MAX_PRESS_ID}")
+        return Feedback(value, press)
+    if kind == "finish":
+        return Finish()
     if kind == "speed":
         speed = _number(obj, "actions_per_s")
         if not MIN_SPEED <= speed <= MAX_SPEED:

@@ -20,8 +20,9 @@ in (docs/security.md has the whole model):
 * **Logging**: rejections are counted and logged as one line per ``rejection_log_s`` seconds at most,
   so a flood cannot grow train.log.
 
-:meth:`TeachingServer.stop` closes the open pages first, then the server: it returns within about a
-second with pages open, and no message is acknowledged after it returns.
+:meth:`TeachingServer.stop` stops taking messages, sends every open page the run's last word (``end``:
+finished or stopped, and the session's summary), closes the pages, then the server: it returns within
+about a second with pages open, and no message is acknowledged after it returns.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ import secrets
 import socket
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Awaitable, Callable, Iterable
 from pathlib import Path
 from typing import Any
@@ -43,7 +44,7 @@ from aiohttp import WSCloseCode, WSMessage, WSMsgType, web
 
 from hfrl_torch.feedback.events import FeedbackQueueClosedError, FeedbackQueueFullError
 from hfrl_torch.interactive.messages import Feedback, MessageError, RateLimiter, parse_message, shown
-from hfrl_torch.interactive.session import TeachingSession
+from hfrl_torch.interactive.session import NotTaken, TeachingSession
 
 STATIC = Path(__file__).parent / "static"
 LOG = logging.getLogger("hfrl_torch.interactive")
@@ -214,6 +215,7 @@ class TeachingServer:
         self.errors = 0  # exceptions caught that a page's input caused (a bug if ever > 0)
         self._limiter = RateLimiter(max_messages_per_s, int(2 * max_messages_per_s))
         self._teachers: list[web.WebSocketResponse] = []
+        self._sent: dict[web.WebSocketResponse, deque[tuple[float, int]]] = {}  # (wall, frame version)
         self._watchers: list[web.WebSocketResponse] = []
         self._open = 0
         self._closing = False
@@ -340,7 +342,8 @@ class TeachingServer:
         self.session.connect()
         sender = asyncio.ensure_future(self._send_frames(ws))
         try:
-            await self._send(ws, {"type": "config", "keys": self.keys, "view": self.view})
+            config = {"type": "config", "keys": self.keys, "view": self.view, **self.session.info}
+            await self._send(ws, {**config, "reaction_s": self.session.reaction_s})
             await self._send(ws, self.session.settings())
             await self._send(ws, self._role(teaching))
             async for msg in ws:
@@ -353,6 +356,7 @@ class TeachingServer:
                     )
         finally:
             sender.cancel()
+            self._sent.pop(ws, None)
             self._forget(ws)
             self._open -= 1
             self.session.disconnect()
@@ -385,6 +389,9 @@ class TeachingServer:
             self.rejections.add("connection error", f"websocket closed with an error: {ws.exception()}")
 
     async def _text(self, ws: web.WebSocketResponse, data: str) -> None:
+        if self._closing:
+            await self._reject(ws, "server stopping", "the run is stopping; nothing more is taken")
+            return
         if ws not in self._teachers:
             await self._reject(
                 ws, "watch-only", "this page only watches: another page is teaching (one at a time)"
@@ -400,21 +407,30 @@ class TeachingServer:
         except MessageError as e:
             await self._reject(ws, "invalid", str(e))
             return
+        at = self.session.clock()
         try:
-            self.session.apply(message)
-        except (FeedbackQueueFullError, FeedbackQueueClosedError) as e:
-            await self._reject(ws, "not taken", f"feedback not taken: {e}")
+            reply = self.session.apply(message, self._on_screen(ws, at - self.session.reaction_s), at)
+        except (NotTaken, FeedbackQueueFullError, FeedbackQueueClosedError) as e:
+            press = message.id if isinstance(message, Feedback) else -1
+            await self._reject(ws, "not taken", f"not taken: {e}", id=press)
             return
-        await self._send(ws, {"type": "ack", "message": type(message).__name__.lower()})
+        await self._send(ws, {"type": "ack", "message": type(message).__name__.lower(), **reply})
         if not isinstance(message, Feedback):
             settings = self.session.settings()
             for page in [*self._teachers, *self._watchers]:
                 await self._send(page, settings)
 
-    async def _reject(self, ws: web.WebSocketResponse, kind: str, why: str) -> None:
+    def _on_screen(self, ws: web.WebSocketResponse, wall: float) -> int:
+        """The version of the last frame sent to ``ws`` at or before ``wall`` (-1: none)."""
+        for sent, version in reversed(self._sent.get(ws, ())):
+            if sent <= wall:
+                return version
+        return -1
+
+    async def _reject(self, ws: web.WebSocketResponse, kind: str, why: str, **extra: Any) -> None:
         self.session.reject()
         self.rejections.add(kind, why)
-        await self._send(ws, {"type": "error", "message": why})
+        await self._send(ws, {"type": "error", "message": why, **extra})
 
     def _unhandled(self, error: BaseException | None) -> None:
         self.errors += 1
@@ -434,11 +450,18 @@ class TeachingServer:
         return True
 
     async def _send_frames(self, ws: web.WebSocketResponse) -> None:
-        sent, sent_curve = -1, 0
+        sent, sent_curve, sent_settings = -1, 0, self.session.settings_key()
+        shown = self._sent.setdefault(ws, deque(maxlen=1000))
         while not ws.closed:
+            settings = self.session.settings_key()
+            if settings != sent_settings:
+                sent_settings = settings
+                if not await self._send(ws, self.session.settings()):
+                    return
             version, frame = self.session.latest()
             if version != sent:
                 sent = version
+                shown.append((self.session.clock(), version))
                 if not await self._send(ws, frame):
                     return
             curve_version, curve = self.session.latest_curve()
@@ -500,10 +523,13 @@ class TeachingServer:
         self.rejections.flush()
         loop.close()
 
-    async def _shutdown(self) -> None:
-        """Close every page (no message is handled after this), then the server."""
+    async def _shutdown(self, final: Callable[[], dict[str, Any]] | None) -> None:
+        """Stop taking messages, tell every page ``final()``, close them, then the server."""
         self._closing = True
         pages = [*self._teachers, *self._watchers]
+        if final is not None:
+            last = final()  # after the last acknowledgement: its counts are the run's
+            await asyncio.gather(*(self._send(ws, last) for ws in pages), return_exceptions=True)
         await asyncio.gather(
             *(ws.close(code=WSCloseCode.GOING_AWAY, message=b"the training run stopped") for ws in pages),
             return_exceptions=True,
@@ -521,14 +547,15 @@ class TeachingServer:
             raise OSError(f"cannot serve the browser trainer on {self.host}:{self.port}: {self._error}")
         return self.url
 
-    def stop(self) -> None:
-        """Close the open pages, then stop serving; idempotent. Call it from another thread than the
+    def stop(self, final: Callable[[], dict[str, Any]] | None = None) -> None:
+        """Stop taking messages, send ``final()`` (the run's last word, e.g. the session's summary) to every
+        open page, close them, then stop serving; idempotent. Call it from another thread than the
         server's: once it returns, no message is acknowledged any more."""
         loop, thread = self._loop, self._thread
         if loop is None or thread is None or not thread.is_alive():
             return
         with contextlib.suppress(Exception):  # a shutdown slower than the timeout: the loop stops anyway
-            asyncio.run_coroutine_threadsafe(self._shutdown(), loop).result(timeout=STOP_TIMEOUT_S)
+            asyncio.run_coroutine_threadsafe(self._shutdown(final), loop).result(timeout=STOP_TIMEOUT_S)
         if loop.is_running():
             loop.call_soon_threadsafe(loop.stop)
         thread.join(timeout=STOP_TIMEOUT_S)

@@ -1,5 +1,12 @@
 """End to end in a real headless Chromium: train.py trainer=interactive (Tetris, and domain=keepaway), a page,
-keys pressed, events learned.
+keys pressed, and what the page says checked against what the run saved.
+
+What is covered: each press filed under the placement (or keepaway moment) on screen the reaction allowance
+before it, as the page is told and as the feedback log holds it; keys after using the speed slider and the
+buttons; the layout at 390 px and 1280 px (nothing wider than the window, the Good and Bad buttons never
+move); a dropped connection and a reloaded page (nothing lost or counted twice); Finish and save and its
+summary page; Ctrl-C with a page open (the page says so within 2 s, a press after it is not counted, the
+run exits within 2 s).
 
 Needs Debian's chromium (``/usr/bin/chromium``, installed by ``.ci/run``) and the ``playwright`` package
 (which drives it; no browser download). Skipped, saying why, where either is missing.
@@ -8,14 +15,16 @@ Needs Debian's chromium (``/usr/bin/chromium``, installed by ``.ci/run``) and th
 from __future__ import annotations
 
 import contextlib
-import json
+import re
 import shutil
+import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import pytest
 import torch
@@ -40,6 +49,66 @@ ARGS = [
     "--disable-component-update",
     "--disable-sync",
 ]
+REACTION_S = 0.3
+# test-side only: remember every frame the page receives and every key pressed, with their times
+RECORD_FRAMES = """
+window.__frames = [];
+window.__keys = [];
+window.__opened = 0;
+document.addEventListener("keydown", (e) => window.__keys.push(performance.now()), true);
+const PageSocket = window.WebSocket;
+window.WebSocket = class extends PageSocket {
+  constructor(...args) {
+    super(...args);
+    this.addEventListener("open", () => { window.__opened = performance.now(); });
+    this.addEventListener("message", (e) => {
+      const m = JSON.parse(e.data);
+      if (m.type === "tetris" || m.type === "keepaway") window.__frames.push({ t: performance.now(), ...m });
+    });
+  }
+};
+"""
+# resolves at a moment when the frame on screen REACTION_S ago is unambiguous (no frame change within
+# `margin` ms either side, and it came on this connection) and presses are taken
+SAFE_MOMENT = """([r, margin]) => new Promise((resolve) => {
+  const check = () => {
+    const f = window.__frames, at = performance.now() - r * 1000;
+    let i = -1;
+    for (let j = 0; j < f.length; j++) if (f[j].t <= at) i = j;
+    const next = i + 1 < f.length ? f[i + 1].t : Infinity;
+    const ok = i >= 0 && f[i].t >= window.__opened && at - f[i].t > margin && next - at > margin &&
+      f[i].action !== "-";  // keepaway: a decision of this episode is on screen
+    if (ok && !document.getElementById("good").disabled) {
+      resolve(true);
+    } else setTimeout(check, 5);
+  };
+  check();
+})"""
+# the frames on screen REACTION_S before the last key press: the one then, and its neighbour when the
+# moment lies within `margin` ms of a frame change (arrival and press times are measured on the page);
+# and the frame on screen at the press itself
+FILED = """([r, margin]) => {
+  const f = window.__frames, t = window.__keys[window.__keys.length - 1], at = t - r * 1000;
+  const strip = ({ board, before_clear, keepers, takers, ...rest }) => rest;
+  let i = -1, k = -1;
+  for (let j = 0; j < f.length; j++) { if (f[j].t <= at) i = j; if (f[j].t <= t) k = j; }
+  const near = [f[i]];
+  if (i > 0 && at - f[i].t < margin) near.push(f[i - 1]);
+  if (i + 1 < f.length && f[i + 1].t - at < margin) near.push(f[i + 1]);
+  return { near: near.map(strip), now: strip(f[k]) };
+}"""
+LAYOUT = """() => {
+  const width = document.documentElement.clientWidth;
+  const wide = [...document.querySelectorAll("body *")].filter((e) => {
+    const r = e.getBoundingClientRect();
+    return r.width > 0 && (r.right > width + 0.5 || r.left < -0.5);
+  }).map((e) => e.id || e.tagName);
+  return { width, scroll: document.documentElement.scrollWidth, wide };
+}"""
+BUTTONS = """() => ["good", "bad"].map((id) => {
+  const r = document.getElementById(id).getBoundingClientRect();
+  return [r.x, r.y, r.width, r.height];
+})"""
 
 
 def _url(proc: subprocess.Popen, timeout: float = 120) -> str:
@@ -48,95 +117,220 @@ def _url(proc: subprocess.Popen, timeout: float = 120) -> str:
     while time.time() < deadline:
         line = proc.stderr.readline()
         if "Teach the agent in your browser:" in line:
+            threading.Thread(target=proc.stderr.read, daemon=True).start()  # a full pipe would block the run
             return line.split("browser:", 1)[1].strip()
         if not line and proc.poll() is not None:
             break
     raise AssertionError("train.py did not print the page's URL")
 
 
-def _train(run_dir: Path, *overrides: str) -> subprocess.Popen:
-    """``train.py`` with the browser trainer on a free port, its stderr readable for the page's URL."""
-    args = [
-        sys.executable,
-        str(ROOT / "train.py"),
-        *overrides,
-        "logger.backend=none",
-        f"hydra.run.dir={run_dir}",
-    ]
-    return subprocess.Popen(args, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-
-
 @contextlib.contextmanager
-def _teach(run_dir: Path, ready: str, wait: float, *overrides: str) -> Iterator[Page]:
-    """train.py with the browser trainer and a Chromium page on it once ``ready`` (a JS condition)
-    holds; leaving the block closes the page (the person leaves) and the run must then finish."""
-    proc = _train(run_dir, "trainer=interactive", "trainer.port=0", *overrides)
+def _teach(run_dir: Path, *overrides: str) -> Iterator[tuple[subprocess.Popen, Page]]:
+    """train.py with the browser trainer on a free port and a Chromium page on it, once it teaches."""
+    args = [sys.executable, str(ROOT / "train.py"), "trainer=interactive", "trainer.port=0", *overrides]
+    args += ["logger.backend=none", f"hydra.run.dir={run_dir}"]
+    proc = subprocess.Popen(args, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
         url = _url(proc)
         with playwright.sync_playwright() as p:
             browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
-            page = browser.new_page()
+            page = browser.new_page(viewport={"width": 1280, "height": 900})
+            page.add_init_script(RECORD_FRAMES)
             page.goto(url)
-            page.wait_for_function(ready, timeout=60_000)
-            yield page
+            page.wait_for_function("!document.getElementById('good').disabled", timeout=90_000)
+            yield proc, page
             browser.close()
-        assert proc.wait(timeout=wait) == 0
     finally:
         if proc.poll() is None:
             proc.kill()
 
 
-def _press(page: Page, keys: list[str]) -> None:
-    for key in keys:
+def _given(page: Page) -> int:
+    return int(page.inner_text("#given"))
+
+
+def _press_safely(page: Page, key: str, margin: float = 80) -> dict[str, Any]:
+    """Press ``key`` at a moment when the frame on screen the allowance before is unambiguous; returns the
+    frames on screen the allowance before the key went down (``near``: that one, and its neighbour if that
+    moment was within 20 ms of a frame change), the one on screen at it (``now``) and what the page says
+    the press was filed under (``said``). A press the run refuses, saying why (on a loaded machine the game
+    may end between the safe moment and the key), is not counted and is tried again, up to 3 times."""
+    refused = []
+    for _ in range(3):
+        before = _given(page)
+        page.evaluate(SAFE_MOMENT, [REACTION_S, margin])
+        page.evaluate("document.getElementById('last-press').classList.remove('refused')")
         page.keyboard.press(key)
-        page.wait_for_timeout(300)
+        page.wait_for_function(
+            f"Number(document.getElementById('given').textContent) === {before + 1} ||"
+            " document.getElementById('last-press').classList.contains('refused')"
+        )
+        said = page.inner_text("#last-press")
+        if _given(page) == before + 1:
+            return {**page.evaluate(FILED, [REACTION_S, 20]), "said": said}
+        assert "not counted" in said and _given(page) == before, said
+        refused.append(said)
+    raise AssertionError(f"3 presses in a row were refused: {refused}")
 
 
-def test_person_presses_keys_and_the_learner_gets_them(tmp_path):
+def _filed(press: dict[str, Any]) -> dict[str, Any]:
+    """The frame among ``press["near"]`` the page says the press was filed under (AssertionError: none)."""
+    for frame in press["near"]:
+        if f"(placement {frame['placement']} of game {frame['game']})" in press["said"]:
+            return frame
+    raise AssertionError(f"{press['said']!r} is none of {press['near']}")
+
+
+def _fits(page: Page, width: int) -> None:
+    page.set_viewport_size({"width": width, "height": 900})
+    page.wait_for_timeout(50)
+    layout = page.evaluate(LAYOUT)
+    assert layout["scroll"] <= width and layout["wide"] == [], layout
+
+
+def _unmoved(page: Page, states: list[str]) -> None:
+    """The Good and Bad buttons stay where they are while the page goes through ``states``."""
+    where = page.evaluate(BUTTONS)
+    for key in states:
+        page.keyboard.press(key)
+        page.wait_for_timeout(150)
+        assert page.evaluate(BUTTONS) == where, key
+
+
+def test_tetris_presses_are_filed_and_counted_as_saved_through_reconnects_and_finish(tmp_path):
     run_dir = tmp_path / "live"
-    overrides = ["trainer.actions_per_s=4", "agent.iterations=3", "agent.population=10"]
-    overrides += ["agent.games_per_candidate=1", "agent.eval_games=3", "agent.watch_pieces=60"]
-    ready = "document.getElementById('score').textContent !== '-'"
-    with _teach(run_dir, ready, 240, *overrides) as page:
-        _press(page, ["/", "/", "z"])
-        page.click("#good")
-        page.wait_for_timeout(300)
-        assert page.inner_text("#given") == "4"
+    overrides = ["trainer.actions_per_s=4", "agent.iterations=50", "agent.population=10"]
+    overrides += ["agent.games_per_candidate=1", "agent.eval_games=2", "agent.watch_pieces=60"]
+    with _teach(run_dir, *overrides) as (proc, page):
+        assert "placement" in page.inner_text("#status") and "trust factor" in page.inner_text(
+            "#weight-sentence"
+        )
+        presses = [_press_safely(page, key) for key in ["/", "/", "z"]]
+        # keys after the slider: its number follows the drag, then keys go on working
+        box = page.locator("#speed").bounding_box()
+        page.mouse.move(box["x"] + box["width"] * 0.17, box["y"] + box["height"] / 2)
+        page.mouse.down()
+        page.mouse.move(box["x"] + box["width"] * 0.10, box["y"] + box["height"] / 2, steps=4)
+        dragged = page.inner_text("#speed-value")
+        page.mouse.up()
+        assert dragged != "4"  # shown while dragging, before the change is sent
+        presses.append(_press_safely(page, "/"))
+        page.focus("#speed")  # even with the slider focused
+        presses.append(_press_safely(page, "z"))
+        page.click("#pause")
+        page.click("#pause")  # paused and resumed with the button, then keys
+        presses.append(_press_safely(page, "/"))
+        for p in presses:  # filed under what was on screen 0.3 s before, which is not what is on screen
+            seen, word = _filed(p), "Good" if p["said"].startswith("Good") else "Bad"
+            assert (
+                p["said"]
+                == f"{word} → {seen['label']} (placement {seen['placement']} of game {seen['game']})"
+            )
+            assert (seen["game"], seen["placement"]) != (p["now"]["game"], p["now"]["placement"])
+
+        _unmoved(page, ["p", "p", "h", "h"])  # paused, away: other words, same buttons
+        _fits(page, 390)
+        _unmoved(page, ["p", "p", "h", "h"])
+        _fits(page, 1280)
+
+        counted, where = _given(page), page.evaluate(BUTTONS)
+        page.evaluate("S.ws.close()")  # the connection drops: a press then is not counted
+        page.wait_for_function(
+            "document.getElementById('status').textContent.includes('Connection to the run lost')"
+        )
+        page.keyboard.press("/")
+        assert "not counted" in page.inner_text("#last-press") and _given(page) == counted
+        assert page.evaluate(BUTTONS) == where  # the buttons stay put
+        page.wait_for_function("!document.getElementById('good').disabled", timeout=30_000)
+        presses.append(_press_safely(page, "/"))
+        page.reload()  # a new page: it shows the run's count, not zero
+        page.wait_for_function("!document.getElementById('good').disabled", timeout=60_000)
+        assert _given(page) == counted + 1
+        presses.append(_press_safely(page, "z"))
         (tmp_path / "page.png").write_bytes(page.screenshot())
-    # the person left: training went on from the game alone
+
+        page.click("#finish")
+        page.wait_for_selector("#summary", state="visible", timeout=60_000)
+        summary = page.inner_text("#summary")
+        assert "You finished the session" in summary and f"{len(presses)} presses counted" in summary
+        assert f"resume={run_dir}" in page.inner_text("#summary-resume")
+        saved = page.inner_text("#summary-saved")
+        assert f"Checkpoint: {run_dir / 'checkpoints' / 'last.pt'}" in saved
+        assert f"Your presses: {run_dir / 'feedback.jsonl'}" in saved
+        points = page.evaluate("S.ended.curve")  # the agent's curve, rounds with the person filled
+        change = page.inner_text("#summary-change")
+        assert any(p[2] >= 0.5 for p in points) and "lines per test game. With you (filled)" in change
+        assert page.locator("#summary-list li").count() == len(presses)
+        _fits(page, 390)
+        assert proc.wait(timeout=60) == 0
 
     events = load_feedback_log(run_dir / "feedback.jsonl")
-    assert [e.value for e in events] == [1.0, 1.0, -1.0, 1.0]
+    assert len(events) == len(presses) and len({e.id for e in events}) == len(events)
+    assert [e.value for e in events] == [1.0 if p["said"].startswith("Good") else -1.0 for p in presses]
+    assert [(e.episode, e.step) for e in events] == [
+        (_filed(p)["round"] - 1, _filed(p)["placement"] - 1) for p in presses
+    ]
     assert {e.source for e in events} == {"human:browser"}
-    # credit: each event names the placement on screen when it was given, in the game being watched
-    assert all(e.episode == 0 and 0 <= e.step < 60 for e in events)
-    assert [e.step for e in events] == sorted(e.step for e in events)
-    rows = [json.loads(x) for x in (run_dir / "metrics.jsonl").read_text().splitlines()]
-    assert rows[0]["feedback/given"] == 4 and rows[0]["feedback/learned_total"] == 4
-    assert [r["feedback/trainer_present"] for r in rows[1:]] == [0.0, 0.0]  # page closed: no teacher
     state = load_checkpoint(run_dir)["state"]
     assert torch.count_nonzero(torch.as_tensor(state["human"]["weight"])) > 0  # H^ learned from the person
 
 
-def test_person_teaches_the_keepers_in_the_browser(tmp_path):
-    run_dir = tmp_path / "live"
-    overrides = ["domain=keepaway", "trainer.actions_per_s=20", "trainer.wait_for_page_s=60"]
-    overrides += ["agent.hours=0.02", "agent.table_bits=12"]
-    ready = "document.getElementById('score').textContent.endsWith(' s')"
-    with _teach(run_dir, ready, 120, *overrides) as page:
-        assert "keepers" in page.inner_text("#help")
-        assert page.inner_text("#speed-unit").startswith("decisions")
-        _press(page, ["/", "z"])
-        assert page.inner_text("#given") == "2"
-        (tmp_path / "page.png").write_bytes(page.screenshot())
-    # the person left: the keepers went on from the environment alone
+def _stop_with_ctrl_c(proc: subprocess.Popen, page: Page, presses: int) -> tuple[float, float, int]:
+    """SIGINT to train.py with the page open: seconds until the page says the run is stopping, until the run
+    has exited, and its exit status; a press made after the stop must not be counted."""
+    proc.send_signal(signal.SIGINT)
+    t0 = time.monotonic()
+    page.wait_for_function(  # in words, on the page: the status line, or the summary once the run has ended
+        "document.getElementById('status').textContent.startsWith('The run is stopping') ||"
+        " !document.getElementById('summary').hidden",
+        timeout=5_000,
+        polling=10,
+    )
+    told = time.monotonic() - t0
+    page.keyboard.press("/")  # after the stop: not counted
+    rc = proc.wait(timeout=10)
+    stopped = time.monotonic() - t0
+    page.wait_for_selector("#summary", state="visible", timeout=5_000)
+    assert "stopped from the terminal" in page.inner_text("#summary-title")
+    assert f"{presses} presses counted" in page.inner_text("#summary-presses") and _given(page) == presses
+    return told, stopped, rc
 
+
+def test_ctrl_c_with_a_tetris_page_open_is_said_at_once_and_stops_within_2_s(tmp_path):
+    run_dir = tmp_path / "live"
+    overrides = ["trainer.actions_per_s=4", "agent.iterations=20", "agent.population=10"]
+    overrides += ["agent.games_per_candidate=1", "agent.eval_games=2", "agent.watch_pieces=200"]
+    with _teach(run_dir, *overrides) as (proc, page):
+        _press_safely(page, "/")
+        told, stopped, rc = _stop_with_ctrl_c(proc, page, 1)
+    assert told < 2.0 and stopped < 2.0 and rc == 130, (told, stopped, rc)
+    assert [e.value for e in load_feedback_log(run_dir / "feedback.jsonl")] == [1.0]
+
+
+def test_keepaway_presses_are_filed_under_the_moment_shown_before_them_and_ctrl_c_stops(tmp_path):
+    run_dir = tmp_path / "live"
+    overrides = ["domain=keepaway", "trainer.wait_for_page_s=60", "agent.hours=0.05", "agent.table_bits=12"]
+    with _teach(run_dir, *overrides) as (proc, page):
+        assert "keepers" in page.inner_text("#help") and page.inner_text("#speed-unit").startswith(
+            "decisions"
+        )
+        presses = [_press_safely(page, key, margin=30) for key in ["/", "z"]]
+        box = page.locator("#speed").bounding_box()
+        page.mouse.click(box["x"] + 3, box["y"] + box["height"] / 2)  # the slowest speed, then keys
+        presses.append(_press_safely(page, "/", margin=30))
+        for p in presses:  # "keeper 2 passes to keeper 3 (episode 4, 2.3 s)": the moment 0.3 s before
+            episode, seconds = re.search(r"\(episode (\d+), ([\d.]+) s\)$", p["said"]).groups()
+            near = [(f["episode"], f["time_s"]) for f in p["near"]]
+            assert (int(episode), float(seconds)) in near, (p["said"], near)
+            assert (p["now"]["episode"], p["now"]["time_s"]) not in near  # not the moment of the press
+        _fits(page, 390)
+        _unmoved(page, ["p", "p", "h", "h"])
+        _fits(page, 1280)
+        told, stopped, rc = _stop_with_ctrl_c(proc, page, len(presses))
+        _fits(page, 390)
+    assert told < 2.0 and stopped < 2.0 and rc == 130, (told, stopped, rc)
     events = load_feedback_log(run_dir / "feedback.jsonl")
-    assert [e.value for e in events] == [1.0, -1.0]
-    assert {e.source for e in events} == {"human:browser"}
-    assert all(0.0 <= e.time <= 80.0 and e.episode >= 0 for e in events)  # on the field's simulated clock
+    assert [e.value for e in events] == [1.0, -1.0, 1.0] and {e.source for e in events} == {"human:browser"}
+    assert all(0.0 <= e.time <= 200.0 and e.episode >= 0 for e in events)  # on the field's simulated clock
     human = load_checkpoint(run_dir)["state"]["human"]
-    assert int(human["feedback"].sum()) == 2 and human["trainer"] == {"given": 2, "positive": 1}
-    assert torch.count_nonzero(human["human_weight"]) > 0  # H^ learned from the person
-    rows = [json.loads(x) for x in (run_dir / "metrics.jsonl").read_text().splitlines()]
-    assert rows[-1]["feedback/events_per_learner"] == 2.0
+    assert human["trainer"]["given"] == 3 and torch.count_nonzero(human["human_weight"]) > 0

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import threading
-from types import SimpleNamespace
 
 import pytest
 import torch
@@ -13,6 +12,7 @@ from tensordict import TensorDict
 
 from hfrl_torch import keys
 from hfrl_torch.agents.tamer.keeper_tamer import KeeperTamer
+from hfrl_torch.common.checkpoint import load_checkpoint
 from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.envs.keepaway import KeepawayConfig
 from hfrl_torch.envs.keepaway.records import KeepawayRecords
@@ -25,7 +25,7 @@ from hfrl_torch.feedback.events import FeedbackEvent
 from hfrl_torch.feedback.log import FeedbackLog, load_feedback_log
 from hfrl_torch.interactive.keepaway_live import BrowserKeeperTrainer, KeepawayWatcher
 from hfrl_torch.interactive.live import DEFAULT_SPEED, LiveTeaching
-from hfrl_torch.interactive.messages import Feedback, Presence
+from hfrl_torch.interactive.messages import Feedback, Finish, Presence
 from hfrl_torch.interactive.server import TeachingServer
 from hfrl_torch.interactive.session import TeachingSession
 from hfrl_torch.models.tile_coding import TileCoding
@@ -129,7 +129,7 @@ def test_watcher_paces_while_taught_and_runs_free_when_nobody_watches():
     assert len(slept) == 9 and watcher.frames == 10  # the fake clock stands still: no frame due yet
     clock[0] += 0.25
     sim.step()
-    assert watcher.frames == 11 and "away" in session.latest()[1]["text"]
+    assert watcher.frames == 11 and session.latest()[1]["phase"] == "away"
     session.apply(Presence(here=True))
     session.paused = True
     stepper = threading.Thread(target=sim.step)
@@ -156,11 +156,11 @@ def test_frame_has_what_the_page_draws_and_the_curve_gets_hold_times():
     assert len(frame["keepers"]) == 3 and len(frame["takers"]) == 2 and len(frame["ball"]) == 2
     assert -1 <= frame["holder"] < 3 and -1 <= frame["target"] < 3
     assert frame["time_s"] == pytest.approx(0.3) and frame["episode"] == 1 and frame["weight"] == 0.75
-    assert frame["real_time"] == 2.0 and isinstance(frame["action"], str)
+    assert frame["real_time"] == 2.0 and isinstance(frame["action"], str) and frame["phase"] == "watch"
     for seconds in (6.0, 8.0):
         ended = {keys.DONE: torch.tensor([[True]]), keys.EPISODE_CYCLES: torch.tensor([int(seconds * 10)])}
         watcher(TensorDict({"next": ended}, batch_size=[1]))
-    assert session.latest_curve()[1]["curve"] == [[1.0, 7.0]]
+    assert session.latest_curve()[1]["curve"] == [[1.0, 7.0, 1.0]]  # every cycle of the block was taught
     sim.step()
     assert json.loads(json.dumps(session.latest()[1]))["mean_hold_s"] == 7.0
 
@@ -176,7 +176,7 @@ def test_a_taught_loop_learns_from_presses_at_real_time(tmp_path, monkeypatch, r
 
     session.sleep = sleep
     session.connect()
-    page = SimpleNamespace(session=session, url="http://127.0.0.1/test", stop=lambda: None)
+    page = LiveTeaching(TeachingServer(session, port=0), session, QueueTrainer(session.queue))  # not served
     monkeypatch.setattr(keepaway_sarsa, "make_live_teaching", lambda cfg, log, view: page)
     over = ["domain=keepaway", "trainer=interactive", "trainer.wait_for_page_s=0", "agent.table_bits=12"]
     learner, _ = run_learner(tmp_path, *over, f"agent.hours={150 / 36000}", "fusion.weight=0.5")
@@ -213,3 +213,29 @@ def test_config_of_the_keepaway_browser_trainer():
         with pytest.raises(ConfigError, match=message) as info:
             validate_train(_cfg("trainer=interactive", *overrides))
         assert "\n" not in str(info.value)
+
+
+def test_finish_from_the_page_ends_the_keepers_run_with_a_checkpoint(tmp_path, monkeypatch, run_learner):
+    clock, _, session = _fake_clock(0.0)
+    ended = []
+
+    def sleep(s: float) -> None:  # the person presses once, then asks to finish and save
+        clock[0] += s
+        if clock[0] >= 2.0 and session.taken == 0:
+            session.apply(Feedback(1.0))
+        if clock[0] >= 4.0 and session.ending is None:
+            session.apply(Finish())
+
+    session.sleep = sleep
+    session.connect()
+    page = LiveTeaching(TeachingServer(session, port=0), session, QueueTrainer(session.queue))
+    monkeypatch.setattr(page, "stop", lambda reason, saved: ended.append((reason, saved)) or 0)
+    monkeypatch.setattr(keepaway_sarsa, "make_live_teaching", lambda cfg, log, view: page)
+    over = ["domain=keepaway", "trainer=interactive", "trainer.wait_for_page_s=0", "agent.table_bits=12"]
+    learner, final = run_learner(tmp_path, *over, "agent.hours=0.05", "agent.log_minutes=0.05")
+    assert 4.0 <= clock[0] < 4.5  # the chunk ended at the request, not at the 3 simulated minutes
+    assert final is not None and not learner.done and learner.stop_requested
+    [(reason, saved)] = ended
+    assert reason == "finished_by_you" and saved["checkpoint"] == str(tmp_path / "checkpoints" / "last.pt")
+    assert saved["resume"] == f"python train.py resume={tmp_path}"  # not finished: no budget to add
+    assert int(load_checkpoint(tmp_path)["state"]["human"]["feedback"].sum()) == 1

@@ -21,6 +21,7 @@ from hfrl_torch.experiment.cli import CONF_DIR
 from hfrl_torch.experiment.config import check_interactive
 from hfrl_torch.feedback.log import FeedbackLog, load_feedback_log
 from hfrl_torch.interactive.live import LiveTeaching
+from hfrl_torch.interactive.messages import Finish
 from hfrl_torch.interactive.server import TeachingServer, is_loopback, split_authority
 from hfrl_torch.interactive.session import TeachingSession
 from hfrl_torch.trainers.queue_trainer import QueueTrainer
@@ -359,7 +360,7 @@ def test_curve_points_reach_the_page_even_when_frames_follow_at_once(served):
     session.add_point(1, 12.5)
     session.publish({"type": "status", "text": "next game"})
     got = asyncio.run(_exchange(_ws_url(server), [], wait_for=5))
-    assert {"type": "curve", "curve": [[1.0, 12.5]]} in got
+    assert {"type": "curve", "curve": [[1.0, 12.5, 0.0]]} in got
 
 
 def test_connection_limits_from_the_config_are_checked():
@@ -375,3 +376,128 @@ def test_connection_limits_from_the_config_are_checked():
         check_interactive(cfg("trainer.max_connections=0"))
     with pytest.raises(ConfigError, match=r"trainer\.max_teachers=5 is invalid: must be at most"):
         check_interactive(cfg("trainer.max_teachers=5"))
+
+
+def test_stop_tells_every_page_the_end_before_closing_it_within_a_second():
+    session = TeachingSession()
+    server = TeachingServer(session, port=0, max_connections=2)
+    server.start()
+    got: list[list[dict]] = [[], []]
+    closed: list[int | None] = []
+    connected = threading.Barrier(3)
+
+    async def page(i: int) -> None:
+        async with aiohttp.ClientSession() as client:
+            ws = await client.ws_connect(_ws_url(server), origin=_origin(server))
+            connected.wait()
+            async for msg in ws:
+                got[i].append(json.loads(msg.data))
+            closed.append(ws.close_code)
+
+    threads = [threading.Thread(target=asyncio.run, args=(page(i),)) for i in range(2)]
+    for t in threads:
+        t.start()
+    connected.wait(timeout=10)
+    time.sleep(0.2)
+    t0 = time.monotonic()
+    LiveTeaching(server, session, QueueTrainer(session.queue)).stop("stopped", {"run_dir": "/runs/r"})
+    took = time.monotonic() - t0
+    for t in threads:
+        t.join(10)
+    assert took < 1.0 and closed == [1001, 1001]
+    for messages in got:  # the teaching page and the watching one
+        end = messages[-1]
+        assert end["type"] == "end" and end["reason"] == "stopped" and end["run_dir"] == "/runs/r"
+
+
+def test_a_stop_or_finish_reaches_the_page_at_once_and_later_presses_are_not_taken():
+    session = TeachingSession()
+    with TeachingServer(session, port=0) as server:
+
+        async def scenario() -> list[dict]:
+            async with aiohttp.ClientSession() as client:
+                ws, _ = await _connect(server, client)
+                await ws.send_str(json.dumps({"type": "finish"}))
+                replies = [await _reply(ws)]
+                session.request_stop()  # then Ctrl-C, from the loop's signal handler
+                t0 = time.monotonic()
+                while True:
+                    m = json.loads((await ws.receive(timeout=10)).data)
+                    if m["type"] == "settings" and m["ending"] == "stopping":
+                        break
+                replies.append({"seconds": time.monotonic() - t0})
+                await ws.send_str(json.dumps({"type": "feedback", "value": 1, "id": 41}))
+                replies.append(await _reply(ws))
+                return replies
+
+        finish, told, press = asyncio.run(scenario())
+    assert finish["type"] == "ack" and finish["message"] == "finish"
+    assert told["seconds"] < 0.5
+    assert press == {
+        "type": "error",
+        "message": "not taken: the run is stopping; this press was not saved",
+        "id": 41,
+    }
+    assert session.taken == 0 and len(session.queue) == 0
+
+
+def test_nothing_is_lost_or_duplicated_when_a_page_drops_and_reconnects(tmp_path):
+    log = FeedbackLog(tmp_path / "feedback.jsonl", "live")
+    session = TeachingSession()
+    server = TeachingServer(session, port=0, max_messages_per_s=1000)
+    server.start()
+    teaching = LiveTeaching(server, session, QueueTrainer(session.queue, log=log))
+    sent = [1 if i % 3 else -1 for i in range(40)]
+
+    async def scenario() -> tuple[list[int], int, list[int]]:
+        async with aiohttp.ClientSession() as client:
+            ws, _ = await _connect(server, client)
+            for i, value in enumerate(sent[:30]):  # 30 presses in flight, then the connection drops
+                await ws.send_str(json.dumps({"type": "feedback", "value": value, "id": i}))
+            first = []
+            while len(first) < 10:
+                m = await _reply(ws)
+                first.append(m["id"])
+            ws._response.connection.transport.abort()  # no close handshake: a lost connection
+        async with aiohttp.ClientSession() as client:
+            ws = await client.ws_connect(_ws_url(server), origin=_origin(server))
+            hello = [json.loads((await ws.receive(timeout=10)).data) for _ in range(3)]
+            count = next(m for m in hello if m["type"] == "settings")["given"]
+            second = []
+            for i, value in enumerate(sent[30:], start=30):
+                await ws.send_str(json.dumps({"type": "feedback", "value": value, "id": i}))
+                second.append((await _reply(ws))["id"])
+            return first, count, second
+
+    first, count, second = asyncio.run(scenario())
+    teaching.stop("stopped")
+    log.close()
+    events = load_feedback_log(tmp_path / "feedback.jsonl")
+    assert first == list(range(10)) and second == list(range(30, 40))
+    # the reconnected page is told how many the run took (what it counts from then on): each of them is
+    # logged once, in order, and so is every press acknowledged after
+    assert 10 <= count <= 30 and session.taken == count + 10 and len(events) == count + 10
+    assert [e.value for e in events] == [float(v) for v in sent[:count] + sent[30:]]
+    assert len({e.id for e in events}) == len(events)
+
+
+def test_the_end_names_why_the_run_ended_and_how_to_continue_it(tmp_path, monkeypatch):
+    session = TeachingSession()
+    teaching = LiveTeaching(TeachingServer(session, port=0), session, QueueTrainer(session.queue))
+    ended: list[tuple[str, dict]] = []
+    monkeypatch.setattr(teaching, "stop", lambda reason, saved: ended.append((reason, saved)) or 0)
+    teaching.end(True, tmp_path, "agent.iterations", 50)  # the budget is spent
+    teaching.end(False, tmp_path, "agent.iterations", 50)  # Ctrl-C
+    try:
+        raise RuntimeError("the loop failed")
+    except RuntimeError:  # as in the run loop's ``finally`` with an exception on its way out
+        teaching.end(False, tmp_path, "agent.iterations", 50)
+    session.apply(Finish())
+    teaching.end(False, tmp_path, "agent.iterations", 50)
+    assert [reason for reason, _ in ended] == ["finished", "stopped", "failed", "finished_by_you"]
+    assert ended[0][1]["resume"] == f"python train.py resume={tmp_path} agent.iterations=50"
+    assert {saved["resume"] for _, saved in ended[1:]} == {f"python train.py resume={tmp_path}"}
+    assert ended[0][1]["checkpoint"] is None  # none written yet: the page says so
+    assert ended[0][1]["feedback_log"] == str(tmp_path / "feedback.jsonl")
+    with pytest.raises(ValueError, match="reason='done' is invalid; allowed: finished, finished_by_you"):
+        LiveTeaching(TeachingServer(session, port=0), session, QueueTrainer(session.queue)).stop("done")

@@ -123,7 +123,16 @@ class SarsaKeepers(Learner):
         self.watcher: KeepawayWatcher | None = None
         if self.teaching is not None:
             weight = lambda: float(self.fusion.weight()[0])  # noqa: E731
-            self.watcher = KeepawayWatcher(self.trainer, self.records, config, weight, int(a.log_episodes))
+            budget_s = float(a.hours) * 3600 if float(a.hours) > 0 else None
+            self.watcher = KeepawayWatcher(
+                self.trainer,
+                self.records,
+                config,
+                weight,
+                int(a.log_episodes),
+                budget_s=budget_s,
+                budget_episodes=int(a.episodes),
+            )
             self.watcher.attach(self.sim)
         self.budget_cycles = round(float(a.hours) * CYCLES_PER_HOUR)
         self.window = max(1, round(float(a.log_minutes) * CYCLES_PER_MINUTE))
@@ -216,8 +225,8 @@ class SarsaKeepers(Learner):
     def advance(self) -> list[Point]:
         points: list[Point] = []
         for _ in range(STEPS_PER_CHUNK):
-            if self.done:
-                break
+            if self.done or (self.teaching is not None and self.teaching.session.ending is not None):
+                break  # (the browser trainer's run is finishing or stopping: the chunk ends now)
             self.step()
             points += self._close_points()
             if points:
@@ -547,8 +556,22 @@ class SarsaKeepers(Learner):
     def hparam_metrics(self, final: dict[str, Any]) -> dict[str, float]:
         return {"hparam/episode_s_last": final["episode_s_mean"]}
 
+    @property
+    def stop_requested(self) -> bool:
+        return self.teaching is not None and self.teaching.finish_requested
+
+    def interrupted(self) -> None:
+        if self.teaching is not None:  # the browser trainer: the chunk's last steps are not paced
+            self.teaching.session.request_stop()
+
     def close(self) -> None:
         if self.teaching is not None:
-            self.teaching.stop()
+            a = self.cfg.agent
+            budget = (
+                ("agent.hours", 2 * float(a.hours))
+                if float(a.hours) > 0
+                else ("agent.episodes", 2 * a.episodes)
+            )
+            self.teaching.end(self.done, self.run_dir, *budget)
         if self.log is not None:
             self.log.close()

@@ -66,7 +66,7 @@ from hfrl_torch.feedback.channel import FeedbackChannel
 from hfrl_torch.feedback.log import FeedbackLog
 from hfrl_torch.fusion.transform import FeedbackFusion, FusionModule
 from hfrl_torch.interactive.live import LiveTeaching
-from hfrl_torch.interactive.tetris_live import LATE_FEEDBACK_S, tetris_frame
+from hfrl_torch.interactive.tetris_live import LATE_FEEDBACK_S, TetrisPage
 
 
 class CEMLearner(Learner):
@@ -82,6 +82,7 @@ class CEMLearner(Learner):
         self.names = feature_names(feature_id(cfg.domain.features), self.rules.width)
         self.taught = cfg.trainer.name != "none"
         self.teaching: LiveTeaching | None = None
+        self.page: TetrisPage | None = None
         self.log: FeedbackLog | None = None
         n = len(self.names)
         mean = scale = None
@@ -121,6 +122,7 @@ class CEMLearner(Learner):
         self.log = FeedbackLog(run_dir / "feedback.jsonl", session=run_dir.name)
         if cfg.trainer.name == "interactive":
             self.teaching = make_live_teaching(cfg, self.log, view="tetris")
+            self.page = TetrisPage(self.teaching.session, int(cfg.agent.iterations))
             self.trainer = self.teaching.trainer
             self.who = "a person in the browser (human:browser)"
         else:
@@ -185,9 +187,10 @@ class CEMLearner(Learner):
             watched = dict.fromkeys(("env_return", "fused_return", "placements", "given", "positive"), 0.0)
             if bool(self.departure.present(torch.tensor(t), self.clock)):  # the trainer's game
                 watched = self.watch_game(_derived_seed(self.cfg.seed, t, 3), t)
-            live = self.teaching.session if self.teaching is not None else None
-            if live is not None:
-                live.publish({"type": "status", "text": f"practising on its own (CE iteration {t + 1})"})
+            if self.teaching is not None:  # the browser trainer: Ctrl-C ends the person's game and the chunk
+                if self.teaching.session.ending == "stopping":
+                    return []  # the game's presses are learned and in the log; resumed, the round is redone
+                self.page.practising(t)
             self.rollout.human_weights = self.human.model.weight[0].detach().clone()
         metrics.update(self.cem.step())
         if self.searches_weight:
@@ -231,8 +234,8 @@ class CEMLearner(Learner):
                     "time/iteration_s": elapsed,
                 }
             )
-            if self.teaching is not None:
-                self.teaching.session.add_point(self.cem.iteration, ev["mean"])
+            if self.page is not None:
+                self.page.point(t, ev["mean"], taught=watched["placements"] > 0)
         else:
             placements = metrics["population/placements"] + self.cem.last_eval_pieces
             metrics.update(
@@ -268,9 +271,12 @@ class CEMLearner(Learner):
 
         The game's last events, which arrive after its last placement, are learned too (they credit its last
         placements). With a person in the browser the game runs on the wall clock at the page's speed, every
-        placement is shown on the page, and the game stops early if the person leaves.
+        placement is shown on the page (``TetrisPage``: presses are filed under the placement on screen
+        0.3 s before them), and the game stops early if the person leaves or the run is ending.
         """
         env, live = self.watched, self.teaching.session if self.teaching is not None else None
+        if self.page is not None and live is not None and live.teaching():
+            self.page.start_game(episode)
         n_env = len(self.names)
         env.set_seed(game_seed)  # a TransformedEnv passes no reset_game_seed down: seed the env's own draw
         td = env.reset()
@@ -279,7 +285,7 @@ class CEMLearner(Learner):
         episode_t = torch.tensor([episode])
         while True:
             if live is not None:
-                if not live.teaching():
+                if not live.teaching() or live.ending is not None:
                     break
                 now = live.wait_turn()
             self._learn_due(td, now)
@@ -297,8 +303,8 @@ class CEMLearner(Learner):
             )
             td = env.step(td)
             nxt = td["next"]
-            if live is not None:
-                live.publish(tetris_frame(td, episode, weight=float(td[keys.FUSION_WEIGHT].reshape(-1)[0])))
+            if self.page is not None:
+                self.page.placed(td, episode, now, weight=float(td[keys.FUSION_WEIGHT].reshape(-1)[0]))
             totals["env_return"] += float(nxt[keys.ENV_REWARD].sum())
             totals["fused_return"] += float(nxt[keys.REWARD].sum())
             totals["placements"] += 1
@@ -308,8 +314,8 @@ class CEMLearner(Learner):
                 break
             td = td["next"]
         if live is not None and totals["placements"] > 0:  # feedback on the last placements is on its way
-            live.sleep(LATE_FEEDBACK_S)
-            late = self.trainer.give(td, torch.zeros(1, dtype=torch.int64), live.clock(), episode_t)
+            live.sleep(LATE_FEEDBACK_S)  # (cut short when the run is ending)
+            late = self.teaching.trainer.late(live.clock())
             self.channel.put_events(late)
             self._count(totals, late)
         while self.channel.pending:
@@ -417,8 +423,17 @@ class CEMLearner(Learner):
     def hparam_metrics(self, final: dict[str, Any]) -> dict[str, float]:
         return {"hparam/eval_lines_mean": final["eval/mean_policy_lines_mean"]}
 
+    @property
+    def stop_requested(self) -> bool:
+        return self.teaching is not None and self.teaching.finish_requested
+
+    def interrupted(self) -> None:
+        if self.teaching is not None:
+            self.teaching.session.request_stop()
+
     def close(self) -> None:
         if self.teaching is not None:
-            self.teaching.stop()
+            more = 2 * int(self.cfg.agent.iterations)
+            self.teaching.end(self.done, self.run_dir, "agent.iterations", more)
         if self.log is not None:
             self.log.close()

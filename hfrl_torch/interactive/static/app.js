@@ -1,20 +1,117 @@
-// The browser trainer's page: draws what the agent does, sends the person's feedback over a WebSocket.
+// The browser trainer's page: draws what the agent does, sends the person's presses over a WebSocket, and
+// says only what the run confirms: a press counts once the server acknowledges it, and the run's own
+// messages say when it is practising, finishing, stopping or has ended.
 "use strict";
 
 const token = new URLSearchParams(location.search).get("token");
 const wsUrl = `${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws${token ? "?token=" + encodeURIComponent(token) : ""}`;
 const $ = (id) => document.getElementById(id);
-let ws = null;
-let keys = { good: "/", bad: "z", pause: "p", presence: "h" };
-let paused = false;
-let here = true;
-let given = 0;
-let curve = [];
-let view = "tetris";
+const S = {
+  ws: null, connected: false, everConnected: false, failures: 0, ended: null,
+  keys: { good: "/", bad: "z", pause: "p", presence: "h" }, view: "tetris", info: {},
+  role: "teach", paused: false, here: true, live: true, ending: null, progress: {},
+  given: 0, pending: new Map(), nextId: 0, curve: [], frame: null, reaction: 0.3, clearTimer: null,
+};
 
 function send(obj) {
-  if (ws && ws.readyState === WebSocket.OPEN) ws.send(JSON.stringify(obj));
+  if (S.ws && S.ws.readyState === WebSocket.OPEN) { S.ws.send(JSON.stringify(obj)); return true; }
+  return false;
 }
+
+function duration(s) {
+  if (s === null || s === undefined || !isFinite(s)) return null;
+  s = Math.max(0, Math.round(s));
+  if (s < 60) return `${s} s`;
+  if (s < 3600) return `${Math.floor(s / 60)} min ${s % 60} s`;
+  return `${Math.floor(s / 3600)} h ${Math.round((s % 3600) / 60)} min`;
+}
+
+// --- what can be pressed, and what the page says ---
+
+function whyNot() {
+  if (S.ended) return "the run has ended";
+  if (!S.connected) return "the page is not connected to the run";
+  if (S.ending === "finishing") return "the run is finishing and saving";
+  if (S.ending) return "the run is stopping";
+  if (S.role !== "teach") return "another page is teaching";
+  if (!S.here) return "you said you are away";
+  if (S.view === "tetris" && !S.live) return "the agent is practising on its own";
+  return null;
+}
+
+function leftText() {
+  const p = S.progress || {};
+  if (p.total === undefined) return "";
+  let left;
+  if (p.unit === "rounds") left = `${p.left} of ${p.total} practice rounds left`;
+  else if (p.unit === "episodes") left = `${p.left} of ${p.total} episodes left`;
+  else left = `${(p.left / 60).toFixed(1)} of ${(p.total / 60).toFixed(1)} simulated minutes left`;
+  const t = duration(p.left_s);
+  return t === null ? left : `${left}, about ${t} at the current pace`;
+}
+
+function statusText() {
+  if (S.ended) return "The session has ended: see the summary below.";
+  if (!S.connected) {
+    if (!S.everConnected) return "Connecting to the run...";
+    return S.failures > 4
+      ? "The run does not answer: it may have stopped (the terminal says). This page reconnects if it comes back."
+      : "Connection to the run lost; trying again... Presses are not counted until it is back.";
+  }
+  if (S.ending === "finishing") return "Finishing: the agent ends this round and saves the run. New presses are not counted.";
+  if (S.ending) return "The run is stopping (stopped from the terminal): it saves what you taught. New presses are not counted.";
+  if (S.role !== "teach") return "Watching only: another page is teaching.";
+  if (!S.here) return `You're away: the agent practises on its own; presses are not counted. ${leftText()}.`;
+  if (S.view === "tetris" && !S.live) return "Practising on its own between your games; presses are not counted until your next game.";
+  if (S.paused) return `Paused. A press now counts for the ${S.view === "tetris" ? "placement" : "moment"} on screen. Press Resume (${S.keys.pause}) to go on.`;
+  return S.view === "tetris"
+    ? "Your game: judge each placement. A press counts for the placement on screen a moment before it."
+    : "Watching you teach: a press counts for what the keepers did in the last half second.";
+}
+
+function coverText() {
+  if (S.ended) return "The session has ended.";
+  if (!S.connected) return S.everConnected ? "Not connected to the run." : "Connecting...";
+  if (S.ending) return S.ending === "finishing" ? "Finishing and saving..." : "The run is stopping...";
+  if (!S.here) return `You're away. The agent practises on its own: ${leftText()}. Press I'm here (${S.keys.presence}) to teach again before then.`;
+  if (S.view === "tetris" && !S.live) {
+    const p = S.progress || {};
+    const round = p.total === undefined ? "" : ` (round ${Math.min(p.done + 1, p.total)} of ${p.total})`;
+    return `Practising on its own${round}. Your next game starts when this round ends.`;
+  }
+  return null;
+}
+
+function render() {
+  $("status").textContent = statusText();
+  const cover = coverText();
+  $("cover").hidden = cover === null;
+  $("cover-text").textContent = cover || "";
+  const canPress = whyNot() === null;
+  $("good").disabled = !canPress; $("bad").disabled = !canPress;
+  const teach = S.connected && !S.ended && !S.ending && S.role === "teach";
+  $("pause").disabled = !teach; $("presence").disabled = !teach; $("finish").disabled = !teach;
+  $("speed").disabled = !teach;
+  $("pause").firstChild.textContent = S.paused ? "Resume (" : "Pause (";
+  $("presence").firstChild.textContent = S.here ? "I'm away (" : "I'm here (";
+  $("finish").textContent = S.ending === "finishing" ? "Finishing..." : "Finish and save";
+  $("given").textContent = String(S.given);
+  const p = S.progress || {};
+  if (p.total !== undefined) {
+    $("progress").textContent = p.unit === "rounds"
+      ? `${p.done} of ${p.total} done`
+      : p.unit === "episodes" ? `${p.done} of ${p.total} episodes`
+        : `${(p.done / 60).toFixed(1)} of ${(p.total / 60).toFixed(1)} min`;
+  }
+}
+
+function lastPress(text, refused) {
+  const el = $("last-press");
+  el.textContent = text;
+  el.classList.toggle("refused", !!refused);
+}
+
+// --- presses ---
 
 function flash(kind) {
   const f = $("flash");
@@ -23,31 +120,71 @@ function flash(kind) {
 }
 
 function feedback(value) {
-  send({ type: "feedback", value: value });
-  given += 1;
-  $("given").textContent = String(given);
+  const why = whyNot();
+  const word = value > 0 ? "Good" : "Bad";
+  if (why !== null) { lastPress(`${word} not counted: ${why}.`, true); return; }
+  const id = S.nextId;
+  S.nextId = (S.nextId + 1) % 1000000;
+  if (!send({ type: "feedback", value: value, id: id })) { lastPress(`${word} not counted: not connected.`, true); return; }
+  S.pending.set(id, value);
   flash(value > 0 ? "good" : "bad");
 }
 
-function drawTetris(f) {
+function onAck(m) {
+  if (m.message !== "feedback") return;
+  S.pending.delete(m.id);
+  S.given = m.given;
+  const word = m.value > 0 ? "Good" : "Bad";
+  const what = m.filed ? m.filed : "this moment";
+  lastPress(`${word} → ${what}${m.paused ? " (while paused)" : ""}`, false);
+  render();
+}
+
+function onError(m) {
+  if (m.id !== undefined && m.id >= 0 && S.pending.has(m.id)) {
+    const word = S.pending.get(m.id) > 0 ? "Good" : "Bad";
+    S.pending.delete(m.id);
+    lastPress(`${word} not counted: ${m.message.replace(/^not taken: /, "")}.`, true);
+  } else console.warn("the run rejected a message:", m.message);
+}
+
+// --- drawing ---
+
+function drawBoard(board, marked, rows) {
   const c = $("view");
-  const rows = f.board.length, cols = f.board[0].length;
-  const cell = Math.floor(Math.min(300 / cols, 600 / rows));
-  c.width = cols * cell; c.height = rows * cell;
+  const h = board.length, w = board[0].length;
+  const cell = Math.floor(Math.min(300 / w, 600 / h));
+  if (c.width !== w * cell || c.height !== h * cell) { c.width = w * cell; c.height = h * cell; }
   const g = c.getContext("2d");
   g.fillStyle = "#111"; g.fillRect(0, 0, c.width, c.height);
-  const placed = new Set((f.placed || []).map(([r, col]) => r * cols + col));
-  for (let r = 0; r < rows; r++) {
-    for (let col = 0; col < cols; col++) {
-      if (!f.board[r][col]) continue;
-      g.fillStyle = placed.has(r * cols + col) ? "#f0c040" : "#5a8fd0";
-      g.fillRect(col * cell + 1, (rows - 1 - r) * cell + 1, cell - 2, cell - 2);
+  const mark = new Set((marked || []).map(([r, col]) => r * w + col));
+  const full = new Set(rows || []);
+  for (let r = 0; r < h; r++) {
+    if (full.has(r)) { g.fillStyle = "#fff6c0"; g.fillRect(0, (h - 1 - r) * cell, c.width, cell); }
+    for (let col = 0; col < w; col++) {
+      if (!board[r][col]) continue;
+      g.fillStyle = full.has(r) ? "#ffb000" : mark.has(r * w + col) ? "#f0c040" : "#5a8fd0";
+      g.fillRect(col * cell + 1, (h - 1 - r) * cell + 1, cell - 2, cell - 2);
     }
   }
-  $("score-label").textContent = "Lines";
-  $("score").textContent = String(f.lines);
-  $("episode").textContent = String(f.episode);
-  $("action").textContent = f.action;
+}
+
+function drawTetris(f) {
+  if (S.clearTimer) { clearTimeout(S.clearTimer); S.clearTimer = null; }
+  if (f.cleared > 0 && f.before_clear) {  // the full rows glow, then go
+    drawBoard(f.before_clear, f.placed_before_clear, f.cleared_rows);
+    const b = $("banner");
+    b.textContent = f.cleared === 1 ? "1 line!" : `${f.cleared} lines!`;
+    b.hidden = false;
+    S.clearTimer = setTimeout(() => { b.hidden = true; drawBoard(f.board, [], []); S.clearTimer = null; }, 450);
+  } else {
+    $("banner").hidden = true;
+    drawBoard(f.board, f.placed, []);
+  }
+  $("game").textContent = `game ${f.game}, placement ${f.placement}`;
+  $("score").textContent = `${f.lines} this game`;
+  $("action").textContent = f.cleared > 0 ? `${f.action}: cleared ${f.cleared}` : f.action;
+  $("weight").textContent = f.weight === null || f.weight === undefined ? "-" : f.weight.toFixed(2);
 }
 
 function disc(g, x, y, r, colour) {
@@ -85,12 +222,11 @@ function drawKeepaway(f) {
   });
   const [bx, by] = px(f.ball);
   disc(g, bx, by, 5, "#000"); disc(g, bx, by, 4, "#fff");
-  $("score-label").textContent = "Hold time";
+  $("game").textContent = String(f.episode);
   $("score").textContent = `${f.time_s.toFixed(1)} s`;
-  $("episode").textContent = String(f.episode);
   $("action").textContent = f.action;
   $("mean-hold").textContent = f.mean_hold_s === null ? "-" : `${f.mean_hold_s.toFixed(1)} s`;
-  $("trust").textContent = f.weight === null ? "-" : f.weight.toFixed(2);
+  $("weight").textContent = f.weight === null ? "-" : f.weight.toFixed(2);
   $("speed-unit").textContent = `decisions/s (real time: ${f.real_time})`;
 }
 
@@ -101,76 +237,201 @@ function showView(view) {
     '<kbd id="key-good">/</kbd> or <b>Good</b> when they keep it well: holding when the takers are far, ' +
     'passing to an open teammate. Press <kbd id="key-bad">z</kbd> or <b>Bad</b> for passes into a taker ' +
     "or holding on while the takers close in. They learn from you and from how long they keep the ball.";
+  $("game-label").textContent = "Episode";
   $("score-label").textContent = "Hold time";
+  $("action-label").textContent = "Last decision";
+  $("progress-label").textContent = "Simulated time";
   $("speed-unit").textContent = "decisions/s";
 }
 
-function drawCurve() {
-  const c = $("curve"), g = c.getContext("2d");
-  g.clearRect(0, 0, c.width, c.height);
-  if (curve.length === 0) return;
-  const xs = curve.map((p) => p[0]), ys = curve.map((p) => p[1]);
-  const x0 = Math.min(...xs), x1 = Math.max(...xs, x0 + 1), y1 = Math.max(...ys, 1);
-  g.strokeStyle = "#2a5ab0"; g.lineWidth = 2; g.beginPath();
-  curve.forEach(([x, y], i) => {
-    const cx = 10 + ((x - x0) / (x1 - x0)) * (c.width - 20);
-    const cy = c.height - 10 - (y / y1) * (c.height - 20);
-    if (i === 0) g.moveTo(cx, cy); else g.lineTo(cx, cy);
-  });
-  g.stroke();
-  const last = curve[curve.length - 1];
-  $("curve-label").textContent = view === "keepaway"
-    ? `seconds the keepers kept the ball per episode (mean of each block of episodes): latest ${last[1].toFixed(1)}, best ${y1.toFixed(1)}`
-    : `lines per test game after each round of practice: latest ${last[1].toFixed(1)}, best ${y1.toFixed(1)}`;
+function nice(x) {
+  return Math.abs(x) >= 100 ? x.toFixed(0) : Math.abs(x) >= 10 ? x.toFixed(1).replace(/\.0$/, "") : x.toFixed(2).replace(/\.?0+$/, "");
 }
 
+// the learning curve with its axes; each point filled when the person taught it, hollow when it practised alone
+function drawCurveOn(c, curve) {
+  const g = c.getContext("2d");
+  g.clearRect(0, 0, c.width, c.height);
+  const L = 44, R = 10, T = 10, B = 34, W = c.width - L - R, H = c.height - T - B;
+  const keep = S.view === "keepaway";
+  const xs = curve.map((p) => p[0]), ys = curve.map((p) => p[1]);
+  const x0 = curve.length ? Math.min(...xs) : 0, x1 = curve.length ? Math.max(...xs, x0 + 1) : 1;
+  const y1 = Math.max(...ys, 1) * 1.1;
+  const X = (x) => L + (curve.length === 1 ? W / 2 : ((x - x0) / (x1 - x0)) * W);
+  const Y = (y) => T + H - (y / y1) * H;
+  g.strokeStyle = "#555"; g.lineWidth = 1; g.beginPath();
+  g.moveTo(L, T); g.lineTo(L, T + H); g.lineTo(L + W, T + H); g.stroke();
+  g.fillStyle = "#333"; g.font = "11px system-ui, sans-serif";
+  g.textAlign = "right"; g.textBaseline = "middle";
+  [0, y1 / 2, y1].forEach((y) => { g.fillText(nice(y), L - 4, Y(y)); g.beginPath(); g.moveTo(L - 3, Y(y)); g.lineTo(L, Y(y)); g.stroke(); });
+  g.textAlign = "center"; g.textBaseline = "top";
+  if (curve.length) {
+    const ticks = curve.length === 1 ? [x0] : [x0, x1];
+    ticks.forEach((x) => { g.fillText(nice(x), X(x), T + H + 3); });
+  }
+  g.fillText(keep ? "episodes" : "practice round", L + W / 2, T + H + 18);
+  g.save(); g.translate(10, T + H / 2); g.rotate(-Math.PI / 2);
+  g.fillText(keep ? "seconds held" : "lines per test game", 0, -6); g.restore();
+  if (!curve.length) {
+    g.textBaseline = "middle"; g.fillText("no point yet", L + W / 2, T + H / 2);
+    return;
+  }
+  g.strokeStyle = "#2a5ab0"; g.lineWidth = 1.5; g.beginPath();
+  curve.forEach(([x, y], i) => { if (i === 0) g.moveTo(X(x), Y(y)); else g.lineTo(X(x), Y(y)); });
+  g.stroke();
+  curve.forEach(([x, y, taught]) => {
+    g.beginPath(); g.arc(X(x), Y(y), 3.5, 0, 2 * Math.PI);
+    if ((taught || 0) >= 0.5) { g.fillStyle = "#2a8a3a"; g.fill(); } else { g.fillStyle = "#fff"; g.fill(); g.strokeStyle = "#777"; g.stroke(); }
+  });
+}
+
+function drawCurve() {
+  drawCurveOn($("curve"), S.curve);
+  if (!S.curve.length) { $("curve-label").textContent = ""; return; }
+  const last = S.curve[S.curve.length - 1], best = Math.max(...S.curve.map((p) => p[1]));
+  $("curve-label").textContent = (S.view === "keepaway"
+    ? `Seconds the keepers kept the ball (mean of each block of episodes): latest ${last[1].toFixed(1)}, best ${best.toFixed(1)}.`
+    : `Lines per test game after each practice round: latest ${last[1].toFixed(1)}, best ${best.toFixed(1)}.`) +
+    " Filled dots: you taught; hollow: it practised alone.";
+}
+
+// --- the end of the session ---
+
+const HEADLINES = {
+  finished: "The run finished: it used its whole budget.",
+  finished_by_you: "You finished the session. The run is saved.",
+  stopped: "The run was stopped from the terminal (Ctrl-C or a stop signal).",
+  failed: "The run stopped with an error: the terminal says what went wrong.",
+};
+
+function mean(a) { return a.reduce((s, x) => s + x, 0) / a.length; }
+
+function showSummary(m) {
+  S.ended = m; S.connected = false;
+  render();
+  $("teach").hidden = true;
+  $("summary").hidden = false;
+  $("summary-title").textContent = HEADLINES[m.reason] || "The session has ended.";
+  $("summary-why").textContent = m.checkpoint
+    ? "Everything you taught is in the saved run."
+    : "No checkpoint was written yet; your presses are in the feedback log.";
+  const extra = [];
+  if (m.paused) extra.push(`${m.paused} while paused`);
+  $("summary-presses").textContent =
+    `${m.given} presses counted: ${m.good} good, ${m.bad} bad${extra.length ? " (" + extra.join(", ") + ")" : ""}. ` +
+    (m.not_taken ? `${m.not_taken} more were not counted (made while away, between games or after the stop).` : "");
+  drawCurveOn($("summary-curve"), m.curve);
+  const unit = S.view === "keepaway" ? "seconds held" : "lines per test game";
+  const taught = m.curve.filter((p) => p[2] >= 0.5).map((p) => p[1]);
+  const alone = m.curve.filter((p) => p[2] < 0.5).map((p) => p[1]);
+  let change = "No point of the curve yet: the first practice round did not end.";
+  if (m.curve.length) {
+    const first = m.curve[0][1], last = m.curve[m.curve.length - 1][1];
+    change = `From ${first.toFixed(1)} to ${last.toFixed(1)} ${unit}.`;
+    if (taught.length) change += ` With you (filled): ${mean(taught).toFixed(1)} on average over ${taught.length} points.`;
+    if (alone.length) change += ` On its own (hollow): ${mean(alone).toFixed(1)} over ${alone.length}.`;
+    if (taught.length && alone.length) change += " This is not a controlled comparison: the agent also improves with practice.";
+  }
+  $("summary-change").textContent = change;
+  const saved = $("summary-saved");
+  saved.replaceChildren();
+  [["Run", m.run_dir], ["Checkpoint", m.checkpoint || "none yet"], ["Your presses", m.feedback_log]].forEach(([k, v]) => {
+    if (v === undefined) return;
+    const li = document.createElement("li"); li.textContent = `${k}: ${v}`; saved.appendChild(li);
+  });
+  $("summary-resume").textContent = m.resume || "";
+  const list = $("summary-list");
+  list.replaceChildren();
+  m.presses.forEach((p) => {
+    const li = document.createElement("li");
+    li.textContent = `${p.value > 0 ? "Good" : "Bad"} → ${p.filed || "this moment"}${p.paused ? " (while paused)" : ""}`;
+    list.appendChild(li);
+  });
+}
+
+// --- messages from the run ---
+
 function showSettings(m) {
-  paused = m.paused; here = m.here;
-  $("speed").value = String(m.actions_per_s);
-  $("speed-value").textContent = String(m.actions_per_s);
-  $("pause").firstChild.textContent = paused ? "Resume (" : "Pause (";
-  $("presence").firstChild.textContent = here ? "I'm away (" : "I'm here (";
-  if (m.curve) { curve = m.curve; drawCurve(); }
+  S.paused = m.paused; S.here = m.here; S.live = m.live; S.ending = m.ending;
+  S.progress = m.progress || {}; S.given = m.given;
+  if (document.activeElement !== $("speed")) {
+    $("speed").value = String(m.actions_per_s);
+    $("speed-value").textContent = String(m.actions_per_s);
+  }
+  if (m.curve) { S.curve = m.curve; drawCurve(); }
+  render();
 }
 
 function onMessage(ev) {
   const m = JSON.parse(ev.data);
   if (m.type === "config") {
-    keys = m.keys; view = m.view || "tetris";
-    showView(view);
-    $("key-good").textContent = keys.good; $("key-bad").textContent = keys.bad;
-    $("key-pause").textContent = keys.pause; $("key-presence").textContent = keys.presence;
+    S.keys = m.keys; S.view = m.view || "tetris"; S.reaction = m.reaction_s;
+    showView(S.view);
+    $("key-good").textContent = S.keys.good; $("key-bad").textContent = S.keys.bad;
+    $("key-pause").textContent = S.keys.pause; $("key-presence").textContent = S.keys.presence;
+    if (m.weight_name) $("weight-label").textContent = m.weight_name;
+    $("weight-sentence").textContent = m.weight_sentence || "";
   } else if (m.type === "settings") showSettings(m);
-  else if (m.type === "tetris") { drawTetris(m); $("status").textContent = m.text || ""; }
-  else if (m.type === "keepaway") { drawKeepaway(m); $("status").textContent = m.text || ""; }
-  else if (m.type === "curve") { curve = m.curve; drawCurve(); }
-  else if (m.type === "status") $("status").textContent = m.text;
-  else if (m.type === "role") $("status").textContent = m.text;
-  else if (m.type === "error") console.warn("server rejected a message:", m.message);
+  else if (m.type === "tetris") { S.frame = m; drawTetris(m); }
+  else if (m.type === "keepaway") { S.frame = m; drawKeepaway(m); }
+  else if (m.type === "curve") { S.curve = m.curve; drawCurve(); }
+  else if (m.type === "role") { S.role = m.role; render(); }
+  else if (m.type === "ack") onAck(m);
+  else if (m.type === "error") onError(m);
+  else if (m.type === "end") showSummary(m);
 }
 
 function connect() {
-  ws = new WebSocket(wsUrl);
-  ws.onopen = () => { $("status").textContent = "connected"; };
+  const ws = new WebSocket(wsUrl);
+  S.ws = ws;
+  ws.onopen = () => { S.connected = true; S.everConnected = true; S.failures = 0; render(); };
   ws.onmessage = onMessage;
   ws.onclose = () => {
-    $("status").textContent = "disconnected: training goes on without you; reconnecting...";
-    setTimeout(connect, 2000);
+    if (S.ws !== ws) return;
+    S.connected = false;
+    if (S.pending.size) {
+      lastPress(`${S.pending.size} press${S.pending.size > 1 ? "es" : ""} not confirmed before the connection was lost; the count shows what the run took.`, true);
+      S.pending.clear();
+    }
+    if (S.ended) return;
+    S.failures += 1;
+    render();
+    setTimeout(connect, 1000);
   };
 }
 
+// --- controls: keys work whatever was clicked or dragged last ---
+
+function typing(t) {
+  return t && (t.isContentEditable || t.tagName === "TEXTAREA" || t.tagName === "SELECT" ||
+    (t.tagName === "INPUT" && t.type !== "range"));
+}
+
 document.addEventListener("keydown", (e) => {
-  if (e.repeat || e.target.tagName === "INPUT") return;
-  if (e.key === keys.good) feedback(1);
-  else if (e.key === keys.bad) feedback(-1);
-  else if (e.key === keys.pause) send({ type: "pause", paused: !paused });
-  else if (e.key === keys.presence) send({ type: "presence", here: !here });
+  if (e.repeat || e.ctrlKey || e.metaKey || e.altKey || typing(e.target)) return;
+  if (e.key === S.keys.good) feedback(1);
+  else if (e.key === S.keys.bad) feedback(-1);
+  else if (e.key === S.keys.pause) send({ type: "pause", paused: !S.paused });
+  else if (e.key === S.keys.presence) send({ type: "presence", here: !S.here });
   else return;
   e.preventDefault();
 });
-$("good").addEventListener("click", () => feedback(1));
-$("bad").addEventListener("click", () => feedback(-1));
-$("pause").addEventListener("click", () => send({ type: "pause", paused: !paused }));
-$("presence").addEventListener("click", () => send({ type: "presence", here: !here }));
-$("speed").addEventListener("change", (e) => send({ type: "speed", actions_per_s: Number(e.target.value) }));
+function button(id, act) {
+  $(id).addEventListener("click", (e) => { e.currentTarget.blur(); act(); });
+}
+button("good", () => feedback(1));
+button("bad", () => feedback(-1));
+button("pause", () => send({ type: "pause", paused: !S.paused }));
+button("presence", () => send({ type: "presence", here: !S.here }));
+button("finish", () => send({ type: "finish" }));
+const speed = $("speed");
+speed.addEventListener("input", () => { $("speed-value").textContent = speed.value; });
+speed.addEventListener("change", () => {
+  $("speed-value").textContent = speed.value;
+  send({ type: "speed", actions_per_s: Number(speed.value) });
+  speed.blur();
+});
+speed.addEventListener("pointerup", () => speed.blur());
+render();
+drawCurve();
 connect();

@@ -1,0 +1,151 @@
+"""Tetris in the browser trainer: the frames (a placement's cells, the rows it clears), presses filed under
+the placement on screen the reaction allowance before them and credited to it, and the taught CE loop."""
+
+from __future__ import annotations
+
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from tensordict import TensorDict
+
+from hfrl_torch import keys
+from hfrl_torch.envs.tetris.env import TetrisEnv
+from hfrl_torch.envs.tetris.pieces import placement_table
+from hfrl_torch.envs.tetris.rules import TetrisRules
+from hfrl_torch.experiment.learners import tetris_cem
+from hfrl_torch.feedback.credit import PreviousStep, credit_weights
+from hfrl_torch.feedback.events import FeedbackEvent
+from hfrl_torch.feedback.log import FeedbackLog, load_feedback_log
+from hfrl_torch.interactive.live import LiveTeaching
+from hfrl_torch.interactive.messages import Feedback
+from hfrl_torch.interactive.server import TeachingServer
+from hfrl_torch.interactive.session import TeachingSession
+from hfrl_torch.interactive.tetris_live import BrowserTetrisTrainer, TetrisPage, landing, tetris_frame
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), choices=st.lists(st.integers(0, 10**6), min_size=30, max_size=30))
+def test_frames_show_where_the_piece_landed_and_the_rows_it_cleared(seed, choices):
+    env = TetrisEnv(batch=1, rules=TetrisRules(width=6, height=8), features="bt", max_pieces=30)
+    env.set_seed(seed)
+    td = env.reset()
+    table = placement_table(6)
+    for choice in choices:
+        legal = td[keys.ACTION_MASK][0].nonzero().flatten()
+        td[keys.ACTION] = legal[choice % len(legal)].view(1)
+        td = env.step(td)
+        frame = tetris_frame(td, episode=0, weight=0.5)
+        before, after = td[keys.BOARD][0], td["next", keys.BOARD][0]
+        cells = landing(before, int(td[keys.PIECE][0]), int(td[keys.ACTION][0]), table)
+        full = before.clone()
+        for r, c in cells:
+            if r < full.shape[0]:
+                assert not before[r, c]  # the piece lands on free cells
+                full[r, c] = True
+        rows = [r for r in range(full.shape[0]) if bool(full[r].all())]
+        kept = full[[r for r in range(full.shape[0]) if r not in rows]]
+        expected = torch.cat([kept, torch.zeros(len(rows), full.shape[1], dtype=torch.bool)])
+        if not bool(td["next", keys.DONE].any()):
+            assert torch.equal(expected, after)  # the engine's board: the full rows removed
+        assert frame["cleared"] == len(rows) and frame["cleared_rows"] == rows
+        if rows:
+            assert frame["before_clear"] == full.to(torch.int64).tolist() and frame["placed"] == []
+        else:
+            assert frame["placed"] == cells and frame["before_clear"] is None
+        if bool(td["next", keys.DONE].any()):
+            break
+        td = td["next"]
+
+
+def _fake(start: float = 0.0) -> tuple[list[float], TeachingSession]:
+    clock = [start]
+    return clock, TeachingSession(actions_per_s=4.0, clock=lambda: clock[0], sleep=lambda s: None)
+
+
+def test_a_press_is_credited_to_the_placement_on_screen_the_allowance_before_it(tmp_path):
+    clock, session = _fake()
+    log = FeedbackLog(tmp_path / "feedback.jsonl", session="t")
+    trainer = BrowserTetrisTrainer(session, log)
+    starts = [0.0, 0.25, 0.5, 0.75]  # four placements at 4 a second: faster than the 0.3 s allowance
+    for k, t in enumerate(starts):
+        clock[0] = t
+        session.shown(t, episode=2, step=k, label=f"placement {k + 1}")
+    clock[0] = 0.9  # 0.3 s before: 0.6, placement 3 on screen (placement 4 is on screen at the press)
+    assert session.apply(Feedback(1.0))["filed"] == "placement 3"
+    clock[0] = 1.0
+    obs = {keys.PIECES_PLACED: torch.tensor([4])}
+    events = trainer.give(TensorDict(obs, batch_size=[1]), torch.zeros(1), 1.0, torch.tensor([2]))[0]
+    assert [(e.step, e.episode) for e in events] == [(2, 2)]
+    assert 0.5 < events[0].time <= 0.75  # min(0.5 + 0.3, the next placement's start 0.75, now)
+    credit = credit_weights(
+        events[0].time, torch.tensor(starts), torch.tensor([*starts[1:], 1.0]), PreviousStep()
+    )
+    assert credit.tolist() == [0.0, 0.0, 1.0, 0.0]  # all of it to placement 3, the one filed under
+    clock[0] = 1.4  # after the game's last placement: 0.3 s before is 1.1, placement 4
+    session.apply(Feedback(-1.0))
+    late = trainer.late(1.5)[0]
+    assert [(e.step, e.value) for e in late] == [(3, -1.0)] and late[0].time == 1.05
+    session.queue.put(FeedbackEvent(time=1.45, value=1.0, source="human:browser"))  # acknowledged, then stop
+    teaching = LiveTeaching(TeachingServer(session, port=0), session, trainer)
+    assert teaching.stop("stopped") == 1
+    log.close()
+    logged = load_feedback_log(tmp_path / "feedback.jsonl")
+    assert [(e.step, e.episode) for e in logged] == [(2, 2), (3, 2), (3, 2)] and trainer.given == 3
+
+
+def test_the_page_is_told_rounds_games_and_what_is_left():
+    _, session = _fake()
+    wall = [10.0]
+    page = TetrisPage(session, rounds=4, clock=lambda: wall[0])
+    assert not session.live  # nothing to judge before the first game
+    page.start_game(0)
+    assert session.live and page.games == 1
+    page.practising(0)
+    assert not session.live and session.latest()[1] == {
+        "type": "status",
+        "phase": "practice",
+        "round": 1,
+        "rounds": 4,
+    }
+    wall[0] = 16.0
+    page.point(0, 3.5, taught=True)
+    wall[0] = 18.0
+    page.practising(1)
+    page.point(1, 5.0, taught=False)
+    assert session.curve == [[1.0, 3.5, 1.0], [2.0, 5.0, 0.0]]
+    assert session.progress == {"unit": "rounds", "done": 2, "total": 4, "left": 2, "left_s": 2 * 4.0}
+
+
+def test_a_taught_ce_round_files_each_press_under_the_placement_shown_before_it(
+    tmp_path, monkeypatch, run_learner
+):
+    clock, session = _fake()
+    presses = [(1.1, 1.0), (1.6, -1.0), (2.35, 1.0)]  # wall times; 4 placements a second from 0.0
+
+    def sleep(s: float) -> None:  # the person presses while the agent plays
+        clock[0] += s
+        while presses and presses[0][0] <= clock[0]:
+            session.apply(Feedback(presses.pop(0)[1]))
+
+    session.sleep = sleep
+    session.connect()
+    made = {}
+
+    def live(cfg, log, view):
+        made["teaching"] = LiveTeaching(
+            TeachingServer(session, port=0), session, BrowserTetrisTrainer(session, log)
+        )
+        return made["teaching"]
+
+    monkeypatch.setattr(tetris_cem, "make_live_teaching", live)
+    over = ["trainer=interactive", "trainer.wait_for_page_s=0", "agent.iterations=1", "agent.population=6"]
+    over += ["agent.games_per_candidate=1", "agent.eval_games=2", "agent.watch_pieces=30", "domain.height=20"]
+    learner, final = run_learner(tmp_path, *over)
+    assert not presses and final["feedback/given"] == 3 and float(learner.human.applied.sum()) == 3
+    events = load_feedback_log(tmp_path / "feedback.jsonl")
+    # pressed at 1.25, 1.75, 2.5 (the sleep that passes each time), filed under what was on screen 0.3 s
+    # before: placements 3, 5, 8 (0-based, at 0.75, 1.25, 2.0), one earlier than on screen at the press
+    assert [(e.step, e.episode, e.value) for e in events] == [(3, 0, 1.0), (5, 0, -1.0), (8, 0, 1.0)]
+    assert [e.time for e in events] == [1.0, 1.5, 2.25]  # capped at the next placement's start
+    assert session.curve == [[1.0, final["eval/mean_policy_lines_mean"], 1.0]]
+    assert session.ending == "stopping" and session.queue.closed  # closed by the loop, as after a run
