@@ -255,3 +255,16 @@ def test_numba_kernels_need_the_cpu():
         "domain.kernels='numba' runs on the CPU only, not device=cuda; use domain.kernels=auto or torch"
     )
     assert check_kernels(_cfg("train", "domain=keepaway", "agent=sarsa", "device=cuda")) == "auto"
+
+
+def test_the_adaptive_priors_strength_follows_the_domain(compose_train):
+    """Keepaway's short episodes get a prior worth 20 episodes, Tetris's 4; an override still wins."""
+    keepaway = compose_train("domain=keepaway", "fusion=linear", "fusion.weight=adaptive")
+    tetris = compose_train("agent=pg", "fusion=linear", "fusion.weight=adaptive")
+    assert keepaway.fusion.adaptive.prior_count == 20.0 and tetris.fusion.adaptive.prior_count == 4.0
+    assert (
+        compose_train(
+            "domain=keepaway", "fusion=linear", "fusion.adaptive.prior_count=2"
+        ).fusion.adaptive.prior_count
+        == 2
+    )

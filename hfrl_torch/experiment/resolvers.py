@@ -7,6 +7,9 @@ package). ``python train.py --cfg job`` shows them as written; ``--resolve`` sho
   when the fusion scheme needs a trainer, none otherwise.
 - ``${decision_period:<trainer>}``: keepaway holders decide every cycle (100 ms, the reference) without
   a trainer and every 5 cycles (500 ms, the thesis's human-feedback setting) when one watches.
+- ``${adaptive_prior_count:<domain>}``: the strength, in episodes, of the adaptive weight's prior for H^:
+  4 for Tetris, 20 for keepaway, whose episodes are a few seconds each and so carry less evidence
+  (measured: docs/results.md, the adaptive weight).
 - ``${run_dir:<resume>,<new>}``: where Hydra writes a run's files: a new run's own directory (``<new>``, or
   ``<new>_2``, ``<new>_3``... when a run started in the same second has it), or, when resuming,
   ``<resume>/resume-logs/<date>_<time>`` inside the resumed run.
@@ -19,7 +22,8 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-RESOLVERS = ("implied_trainer", "decision_period", "run_dir")
+RESOLVERS = ("implied_trainer", "decision_period", "adaptive_prior_count", "run_dir")
+PRIOR_EPISODES = {"tetris": 4.0, "keepaway": 20.0}
 
 
 def implied_trainer(fusion: str) -> str:
@@ -30,6 +34,11 @@ def implied_trainer(fusion: str) -> str:
 def decision_period(trainer: str) -> int:
     """Cycles between a keepaway holder's decisions: 1 without a trainer, 5 when one watches."""
     return 1 if trainer in (None, "none") else 5
+
+
+def adaptive_prior_count(domain: str) -> float:
+    """Episodes' worth of the bandit's prior for the highest weight in ``domain``."""
+    return PRIOR_EPISODES.get(domain, 4.0)
 
 
 def run_dir(resume: str | None, new: str) -> str:
@@ -46,7 +55,11 @@ def run_dir(resume: str | None, new: str) -> str:
 
 def register() -> None:
     """Register the resolvers (idempotent)."""
-    for name, fn in (("implied_trainer", implied_trainer), ("decision_period", decision_period)):
+    for name, fn in (
+        ("implied_trainer", implied_trainer),
+        ("decision_period", decision_period),
+        ("adaptive_prior_count", adaptive_prior_count),
+    ):
         if not OmegaConf.has_resolver(name):
             OmegaConf.register_new_resolver(name, fn)
     if not OmegaConf.has_resolver("run_dir"):  # cached: a run's directory is fixed once it is named
