@@ -37,6 +37,8 @@ CURVES = (
     ("iteration", "eval/mean_policy_lines_mean"),  # CE, CE + feedback
     ("game", "eval/lines_per_game_mean"),  # TAMER and the other per-game Tetris learners
     ("episode", "eval/episode_seconds_mean"),  # keepaway learners
+    ("frames", "eval/greedy_lines_mean"),  # DQN on Tetris: the greedy policy's fresh games
+    ("frames", "eval/greedy_episode_seconds_mean"),  # DQN keepers: the greedy policy's fresh episodes
 )
 IGNORED = {"seed", "resume", "hydra", "logger", "threads", "device"}
 EFFORT = ("feedback_events", "trainer_minutes", "weight")  # per point, with a trainer

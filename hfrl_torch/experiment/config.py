@@ -594,7 +594,8 @@ def check_dqn(cfg: DictConfig) -> None:
         return
     if trainer == "interactive":
         raise ConfigError(
-            f"trainer=interactive with agent=dqn: the browser trainer teaches agent={'sarsa' if domain == 'keepaway' else 'cem'}; "
+            f"trainer=interactive with agent=dqn: the browser trainer teaches "
+            f"agent={'sarsa' if domain == 'keepaway' else 'cem'}; "
             "agent=dqn takes a simulated trainer or a replay"
         )
     if OmegaConf.select(cfg, "trainer.leave_after") is not None:
@@ -614,8 +615,8 @@ def check_dqn(cfg: DictConfig) -> None:
     features, q_features = str(cfg.human.features), str(cfg.agent.features)
     if q_features not in (features, "bt") or (q_features == "bt" and features not in ("bt", "knox")):
         raise ConfigError(
-            f"agent.features={q_features!r} with human.features={features!r}: the env computes H^'s features and "
-            "Q reads their first columns; allowed: agent.features=bt (a prefix of knox) or the same set as H^"
+            f"agent.features={q_features!r} with human.features={features!r}: the env computes H^'s features "
+            "and Q reads their first columns; allowed: agent.features=bt (a prefix of knox) or H^'s own set"
         )
     check_tetris_trainer(cfg)
 

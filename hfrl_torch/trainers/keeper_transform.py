@@ -3,9 +3,10 @@
 The keepaway twin of :class:`~hfrl_torch.trainers.transform.HumanFeedback`. Each field keeps its simulated
 clock (seconds, continuous across episodes: the cycles of its steps, and of a new episode's start up to its
 first decision). At each step the trainer (the simulated oracle, or a replayed log) judges the deciding
-keeper's action at the field's clock; its events wait in a :class:`~hfrl_torch.feedback.channel.FeedbackChannel`
-and, once due on the field's clock, come out into ``("next", keys.FEEDBACK*)``, with ``keys.CLOCK`` (when the
-field's next decision is made) beside them, so a learner can credit them to its recent decisions.
+keeper's action at the field's clock; its events wait in a
+:class:`~hfrl_torch.feedback.channel.FeedbackChannel` and, once due on the field's clock, come out into
+``("next", keys.FEEDBACK*)``, with ``keys.CLOCK`` (when the field's next decision is made) beside them, so a
+learner can credit them to its recent decisions.
 """
 
 from __future__ import annotations

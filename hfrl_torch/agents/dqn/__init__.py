@@ -1,4 +1,4 @@
-"""Deep Q-learning on TorchRL's own parts (``DQNLoss``, replay buffer, soft target), with a person's H^ fused."""
+"""Deep Q-learning on TorchRL's own parts (``DQNLoss``, replay buffer, soft target), with H^ fused."""
 
 from hfrl_torch.agents.dqn.dqn import CHOOSABLE, DeepQ, choosable_module
 from hfrl_torch.agents.dqn.human import (

@@ -4,8 +4,8 @@ A DQN learner plays B boards (fields) with one network, so its H^ is one model s
 board keeping its own recent decisions for credit. :class:`HumanValues` is what the learner asks of it:
 H^ of every action, the record of each decision, learning from the feedback channel's entries, its state.
 Deep TAMER (``agents.tamer.deep_tamer.DeepTamer``, ``human=mlp``) has it natively; the linear H^ of Tetris
-(``human=linear``) and the tile-coded H^ of keepaway (``human=tile_coded``) are their TAMER agents as they are,
-with the B boards' updates summed into one model (:class:`SharedLinearTamer`, :class:`SharedTileTamer`).
+(``human=linear``) and the tile-coded H^ of keepaway (``human=tile_coded``) are their TAMER agents as they
+are, with the B boards' updates summed into one model (:class:`SharedLinearTamer`, :class:`SharedTileTamer`).
 :class:`HumanValuesModule` and :class:`ChosenEstimate` put H^ on the policy's data path.
 """
 
@@ -103,7 +103,7 @@ class SharedLinearTamer:
 
 
 class SharedTileTamer:
-    """Keepaway TAMER (``KeeperTamer`` on a tile coding) with one H^ for B fields (every decision's owner 0)."""
+    """Keepaway TAMER (``KeeperTamer`` on a tile coding), one H^ for B fields (every decision's owner 0)."""
 
     def __init__(self, tamer: KeeperTamer) -> None:
         if tamer.model.learners != 1:
@@ -184,7 +184,7 @@ class HumanValuesModule(TensorDictModuleBase):
 
 
 class ChosenEstimate(TensorDictModuleBase):
-    """A policy module writing ``keys.HUMAN_REWARD_ESTIMATE`` [B, 1]: H^ of the action taken (reward shaping's H)."""
+    """A policy module writing ``keys.HUMAN_REWARD_ESTIMATE`` [B, 1]: H^ of the action taken (for shaping)."""
 
     def __init__(self) -> None:
         super().__init__()

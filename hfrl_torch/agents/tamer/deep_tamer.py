@@ -105,8 +105,8 @@ class DeepTamer:
         time: torch.Tensor | float,
         active: torch.Tensor | None = None,
     ) -> None:
-        """Remember each active board's decision ``action`` [B] in ``td`` made at ``time`` (seconds, [B] or one);
-        every ``replay_every`` calls, one replay minibatch."""
+        """Remember each active board's decision ``action`` [B] in ``td`` made at ``time`` (seconds, [B] or
+        one); every ``replay_every`` calls, one replay minibatch (once the buffer holds one)."""
         chosen = self.model.select(self.inputs_of(td), action.reshape(-1)).detach().to(torch.float32).cpu()
         if self.x is None:
             self.x = torch.zeros(self.boards, self.history, chosen.shape[-1], dtype=torch.float32)
@@ -120,8 +120,8 @@ class DeepTamer:
         self.starts = torch.where(a, torch.cat([self.starts[:, 1:], now.unsqueeze(1)], 1), self.starts)
         self.filled = torch.where(a, torch.cat([self.filled[:, 1:], act.view(-1, 1)], 1), self.filled)
         self.steps += 1
-        if self.steps % self.replay_every == 0 and len(self.buffer) > 0:
-            self.fit(self.buffer.sample(min(self.batch_size, len(self.buffer))))
+        if self.steps % self.replay_every == 0 and len(self.buffer) >= self.batch_size:
+            self.fit(self.buffer.sample())
 
     def credited(self, value: torch.Tensor, when: torch.Tensor, given: torch.Tensor) -> TensorDict:
         """The replay entries [M] of one event per board (``value``, ``when``, ``given``: [B]): every recent
@@ -145,9 +145,9 @@ class DeepTamer:
         )
 
     def learn(self, feedback: TensorDictBase) -> torch.Tensor:
-        """Learn from the feedback entries of ``feedback`` (``keys.FEEDBACK``, ``FEEDBACK_TIME``, ``FEEDBACK_MASK``,
-        each [B, K]), slot by slot, oldest first: credit, store, one step on the new entries. Returns the
-        events learned per board [B]."""
+        """Learn from the feedback entries of ``feedback`` (``keys.FEEDBACK``, ``FEEDBACK_TIME``,
+        ``FEEDBACK_MASK``, each [B, K]), slot by slot, oldest first: credit, store, one step on the new
+        entries. Returns the events learned per board [B]."""
         given = feedback.get(keys.FEEDBACK_MASK).to(torch.bool).cpu()
         if not bool(given.any()):
             return torch.zeros(self.boards, dtype=torch.int64)
@@ -177,7 +177,7 @@ class DeepTamer:
         return self.last_loss
 
     def state_dict(self) -> dict[str, Any]:
-        """The network, Adam's moments, the replay buffer, the recent decisions: what a resumed run continues."""
+        """The network, Adam's moments, the replay buffer, the recent decisions: what a resume continues."""
         return {
             "model": self.model.state_dict(),
             "optimizer": self.optimizer.state_dict(),
@@ -195,6 +195,9 @@ class DeepTamer:
             self.model.load_state_dict(state["model"])
             self.optimizer.load_state_dict(state["optimizer"])
             self.buffer.load_state_dict(state["buffer"])
+            storage = self.buffer.storage
+            if getattr(storage, "initialized", False):  # a checkpoint keeps the entries, not their batch size
+                storage._storage.auto_batch_size_(batch_dims=1)
             for k in ("actions", "starts", "filled"):
                 if state[k].shape != getattr(self, k).shape:
                     raise ValueError(f"{k} of shape {tuple(state[k].shape)}")

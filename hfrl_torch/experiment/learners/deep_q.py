@@ -1,4 +1,4 @@
-"""A DQN learner on TorchRL's data path, alone or taught by a trainer: what the Tetris and keepaway ones share.
+"""A DQN learner on TorchRL's data path, alone or taught by a trainer: what Tetris and keepaway share.
 
 ``train.py agent=dqn [fusion=<scheme>] [human=mlp]``. One learner (one Q network, one H^) plays
 ``agent.boards`` boards (fields) of a batched env, wrapped as
@@ -199,8 +199,9 @@ class DeepQLearner(Learner):
         if self.taught and not self.resumed:
             logger.text(
                 "trainer",
-                f"{TRAINER_LABELS.get(self.cfg.trainer.name, self.cfg.trainer.name)} (a simulated or replayed "
-                f"trainer, not a person), one per board; fusion={self.cfg.fusion.name}, human={self.cfg.human.name}",
+                f"{TRAINER_LABELS.get(self.cfg.trainer.name, self.cfg.trainer.name)} (a simulated or "
+                f"replayed trainer, not a person), one per board; fusion={self.cfg.fusion.name}, "
+                f"human={self.cfg.human.name}",
             )
 
     def advance(self) -> list[Point]:
@@ -237,7 +238,7 @@ class DeepQLearner(Learner):
         self.frames += batch.numel()
         if self.explore is not None:
             self.explore.step()
-        if self.frames >= int(a.learn_after):
+        if len(self.dqn.buffer) >= max(int(a.learn_after), 1):  # after a resume, the buffer refills first
             for _ in range(self.updates_per_batch):
                 self.losses.append(self.dqn.update())
 
@@ -335,7 +336,8 @@ class DeepQLearner(Learner):
         low, high = final.get(f"{self.score_key}_ci95_low"), final.get(f"{self.score_key}_ci95_high")
         lines = [
             f"Done: {final['frames']} frames; greedy policy {final[f'{self.score_key}_mean']:.2f} "
-            f"{self.score_unit} (95% CI {low:.2f}..{high:.2f} over {self.eval_episodes} fresh {self.episode_word}s)"
+            f"{self.score_unit} (95% CI {low:.2f}..{high:.2f} over {self.eval_episodes} fresh "
+            f"{self.episode_word}s)"
         ]
         curve = [r for r in self.history if self.x_key in r]
         if len(curve) > 1:
@@ -344,8 +346,9 @@ class DeepQLearner(Learner):
         if self.taught:
             lines.append(
                 f"Feedback:         {self.events} events of the "
-                f"{TRAINER_LABELS.get(self.cfg.trainer.name, self.cfg.trainer.name)} (fusion={self.cfg.fusion.name},"
-                f" human={self.cfg.human.name}, weight on H^ now {float(self.fusion.weight()[0]):.2f})"
+                f"{TRAINER_LABELS.get(self.cfg.trainer.name, self.cfg.trainer.name)} "
+                f"(fusion={self.cfg.fusion.name}, human={self.cfg.human.name}, "
+                f"weight on H^ now {float(self.fusion.weight()[0]):.2f})"
             )
             lines.append(f"Feedback log:     {self.log.path}")
         return lines

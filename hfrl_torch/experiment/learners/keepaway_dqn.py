@@ -1,11 +1,11 @@
-"""DQN keepers, alone or with a trainer's H^ fused: ``train.py agent=dqn domain=keepaway [fusion=...] [human=mlp]``.
+"""DQN keepers, alone or with a trainer's H^ fused (``train.py agent=dqn domain=keepaway [fusion=...]``).
 
-Each field is one SMDP for the team (``agents.dqn.TeamSteps``): ``KeepawayEnv(sync="all")`` steps every field to
-its next decision, whichever keeper has the ball, and the reward is the step's simulated seconds. Q is one MLP
-from the deciding keeper's 4n + 2m - 3 state variables to Hold and each pass (inputs scaled by ten tile widths:
-distances / 20-40 m, angles / 100 degrees). H^ is the tile-coded TAMER model on the same variables
-(``human=tile_coded``) or Deep TAMER's network on them (``human=mlp``); a simulated trainer per field judges the
-deciding keeper against the hand-coded keepers, its events credited over the field's clock. The curve's points
+Each field is one SMDP for the team (``agents.dqn.TeamSteps``): ``KeepawayEnv(sync="all")`` steps every field
+to its next decision, whichever keeper has the ball, and the reward is the step's simulated seconds. Q is one
+MLP from the deciding keeper's 4n + 2m - 3 state variables to Hold and each pass (inputs scaled by ten tile
+widths: distances / 20-40 m, angles / 100 degrees). H^ is the tile-coded TAMER model on the same variables
+(``human=tile_coded``) or Deep TAMER's network on them (``human=mlp``); a simulated trainer per field judges
+the deciding keeper against the hand-coded keepers, its events credited over the field's clock. The points
 are the greedy keepers' episode seconds on ``agent.eval_episodes`` fresh episodes (the same at every point).
 """
 
@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from dataclasses import asdict
 from functools import cached_property
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 from tensordict import TensorDictBase
@@ -63,7 +63,7 @@ class KeepawayDQN(DeepQLearner):
     """DQN keepers on ``agent.boards`` fields of one learner (see the module docstring)."""
 
     domain = "keepaway"
-    human_in_keys = [keys.OBSERVATION]
+    human_in_keys: ClassVar[list[Any]] = [keys.OBSERVATION]
     score_key = "eval/greedy_episode_seconds"
     score_unit = "s per episode"
     episode_word = "episode"
@@ -99,7 +99,7 @@ class KeepawayDQN(DeepQLearner):
 
     def greedy_evaluation(self) -> dict[str, float]:
         env = KeepawayEnv(self.eval_episodes, self.config, seed=self.seed + EVAL_SEED_OFFSET, sync="all")
-        seconds = play_episodes(env, self.greedy_policy, self.fusion)
+        seconds, _ = play_episodes(env, self.greedy_policy, self.fusion)
         s = summarize(seconds, floor=0.0)
         return {f"{self.score_key}_{k}": s[k] for k in ("mean", "median", "ci95_low", "ci95_high")}
 
@@ -133,14 +133,15 @@ class KeepawayDQN(DeepQLearner):
 
 
 @torch.no_grad()
-def play_episodes(env: EnvBase, policy: Any, fusion: Any) -> torch.Tensor:
-    """Every field of ``env`` plays one episode greedily by ``policy`` (the fusion in evaluation mode); returns
-    each episode's seconds [B] (float64)."""
+def play_episodes(env: EnvBase, policy: Any, fusion: Any) -> tuple[torch.Tensor, torch.Tensor]:
+    """Every field of ``env`` plays one episode greedily by ``policy`` (the fusion in evaluation mode);
+    returns each episode's seconds [B] (float64) and how it ended [B] (1 out of bounds, 2 taken)."""
     fusion.eval(True)
     try:
         td = env.reset()
         b = td.batch_size[0]
         seconds = torch.zeros(b, dtype=torch.float64)
+        cause = torch.zeros(b, dtype=torch.int64)
         finished = torch.zeros(b, dtype=torch.bool)
         while not bool(finished.all()):
             td = env.step(policy(td))
@@ -148,8 +149,9 @@ def play_episodes(env: EnvBase, policy: Any, fusion: Any) -> torch.Tensor:
             done = nxt[keys.DONE].reshape(-1) & ~finished
             cycles = nxt[keys.EPISODE_CYCLES].reshape(-1).to(torch.float64)
             seconds = torch.where(done, cycles / CYCLES_PER_SECOND, seconds)
+            cause = torch.where(done, nxt[keys.END_CAUSE].reshape(-1).to(torch.int64), cause)
             finished |= done
             td = nxt.exclude(keys.REWARD, keys.DONE, keys.TERMINATED, keys.TRUNCATED)
-        return seconds
+        return seconds, cause
     finally:
         fusion.eval(False)

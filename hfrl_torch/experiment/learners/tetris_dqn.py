@@ -1,4 +1,4 @@
-"""DQN on Tetris afterstates, alone or with a trainer's H^ fused: ``train.py agent=dqn [fusion=...] [human=mlp]``.
+"""DQN on Tetris afterstates, alone or with a trainer's H^ fused: ``train.py agent=dqn [fusion=...]``.
 
 Q(s, a) is one MLP over the features of placement a's afterstate (``agent.features``, BT by default, read as
 the first columns of the env's features: Knox's 46 begin with BT's 21, so H^ over Knox and Q over BT share
@@ -9,7 +9,7 @@ network over the same change (``human=mlp``). The curve's points are the greedy 
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 from tensordict import TensorDictBase
@@ -56,7 +56,7 @@ class TetrisDQN(DeepQLearner):
     domain = "tetris"
     masked = True
     mask_key = CHOOSABLE
-    human_in_keys = [keys.AFTERSTATE_FEATURES, keys.STATE_FEATURES]
+    human_in_keys: ClassVar[list[Any]] = [keys.AFTERSTATE_FEATURES, keys.STATE_FEATURES]
     score_key = "eval/greedy_lines"
     score_unit = "lines per game"
     episode_word = "game"
@@ -100,7 +100,7 @@ class TetrisDQN(DeepQLearner):
             self.cfg, games, features=self.env_features, max_pieces=int(self.cfg.agent.eval_max_pieces)
         )
         env.set_seed(self.seed + EVAL_SEED_OFFSET)
-        lines = play_games(env, self.greedy_policy, self.fusion)
+        lines, _ = play_games(env, self.greedy_policy, self.fusion)
         s = summarize(lines, floor=0.0)
         return {f"{self.score_key}_{k}": s[k] for k in ("mean", "median", "ci95_low", "ci95_high")}
 
@@ -127,22 +127,24 @@ class TetrisDQN(DeepQLearner):
 
 
 @torch.no_grad()
-def play_games(env: EnvBase, policy: Any, fusion: Any) -> torch.Tensor:
-    """Every board of ``env`` plays one game greedily by ``policy`` (the fusion in evaluation mode); returns the
-    lines of each game [B] (float64)."""
+def play_games(env: EnvBase, policy: Any, fusion: Any) -> tuple[torch.Tensor, torch.Tensor]:
+    """Every board of ``env`` plays one game greedily by ``policy`` (the fusion in evaluation mode); returns
+    the lines and the pieces of each game [B] (float64)."""
     fusion.eval(True)
     try:
         td = env.reset()
         b = td.batch_size[0]
         lines = torch.zeros(b, dtype=torch.float64)
+        pieces = torch.zeros(b, dtype=torch.float64)
         finished = torch.zeros(b, dtype=torch.bool)
         while not bool(finished.all()):
             td = env.step(policy(td))
             nxt = td["next"]
             done = nxt[keys.DONE].reshape(-1) & ~finished
             lines = torch.where(done, nxt[keys.LINES].reshape(-1).to(torch.float64), lines)
+            pieces = torch.where(done, nxt[keys.PIECES_PLACED].reshape(-1).to(torch.float64), pieces)
             finished |= done
             td = nxt.exclude(keys.REWARD, keys.DONE, keys.TERMINATED, keys.TRUNCATED)
-        return lines
+        return lines, pieces
     finally:
         fusion.eval(False)
