@@ -582,7 +582,9 @@ def aggregate(cfg: DictConfig) -> dict[str, object]:
     out = Path(str(cfg.out)) if cfg.get("out") else dirs[0]
     out.mkdir(parents=True, exist_ok=True)
     with (out / "summary.csv").open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]) if rows else ["condition"])
+        # every row's columns: an untaught reference has no effort_* columns, a taught condition does
+        fields = list(dict.fromkeys(k for r in rows for k in r)) if rows else ["condition"]
+        writer = csv.DictWriter(f, fieldnames=fields, restval="")
         writer.writeheader()
         writer.writerows(rows)
     (out / "summary.md").write_text(md + "\n")
