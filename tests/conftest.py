@@ -58,7 +58,7 @@ def _run_learner(run_dir, *overrides: str, checkpoint=None, stop_after: int | No
 
     cfg = _compose_train("logger.backend=none", *overrides)
     run_dir.mkdir(parents=True, exist_ok=True)
-    learner = learner_for(cfg.agent.name)(cfg, run_dir, checkpoint)
+    learner = learner_for(cfg.agent.name, cfg.domain.name)(cfg, run_dir, checkpoint)
     if prepare is not None:
         prepare(learner)
     interrupt = Interrupt()

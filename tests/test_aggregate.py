@@ -163,3 +163,23 @@ def test_a_keepaway_run_counts_one_seed_per_team_over_its_episode_budget(tmp_pat
     team1 = next(r for r in runs if r.config["seed"] == 1001).rows
     assert [(r["episode"], r["eval/episode_seconds_mean"]) for r in team0] == [(2, 6.0), (4, 6.5)]
     assert [r["eval/episode_seconds_mean"] for r in team1] == [4.5, 6.0]  # episode 5 is past the budget
+
+
+def test_an_untaught_reference_and_a_taught_condition_share_one_csv(tmp_path):
+    """The reference's row has no effort_* columns, the taught one's has: the CSV holds both."""
+    from omegaconf import OmegaConf
+
+    from hfrl_torch.experiment.aggregate import aggregate
+
+    for seed in range(2):
+        base = f"seed: {seed}\nagent:\n  name: dqn\n"
+        _run(tmp_path / "s", f"{seed}", base + "fusion:\n  name: none\n", [1, 2 + seed])
+        taught = tmp_path / "s" / f"{seed + 10}"
+        _run(tmp_path / "s", f"{seed + 10}", base + "fusion:\n  name: linear\n", [1, 5 + seed])
+        effort = {"feedback_events": 40 + seed, "trainer_minutes": 2.0, "weight": 0.5}
+        rows = [json.loads(r) | effort for r in (taught / "metrics.jsonl").read_text().splitlines()]
+        (taught / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
+    aggregate(OmegaConf.create({"runs": str(tmp_path / "s"), "out": str(tmp_path / "r")}))
+    rows = list(csv.DictReader((tmp_path / "r" / "summary.csv").open()))
+    assert [r["condition"] for r in rows] == ["fusion.name=none", "fusion.name=linear"]
+    assert rows[0]["effort_feedback_events_last"] == "" and rows[1]["effort_feedback_events_last"] == "40.5"

@@ -135,3 +135,88 @@ def test_keepaway_reward_shaping_goes_through_the_component(tmp_path, run_learne
     monkeypatch.setattr(Fusion, "reward", spy)
     run_learner(tmp_path, *KEEPAWAY, "fusion=reward_shaping", "agent.hours=0.002")
     assert len(calls) > 20  # every env step's rewards (and the episodes' last ones)
+
+
+DQN_TETRIS = [
+    "agent=dqn",
+    "fusion=linear",
+    "trainer=oracle",
+    *TETRIS,
+    "agent.boards=3",
+    "agent.frames=60",
+    "agent.eval_every=60",
+    "agent.eval_episodes=2",
+    "agent.eval_max_pieces=10",
+    "agent.learn_after=30",
+    "agent.batch_size=8",
+    "agent.cells=[8]",
+    "agent.epsilon_start=0",
+    "agent.epsilon_end=0",
+]
+DQN_KEEPAWAY = [
+    "agent=dqn",
+    "domain=keepaway",
+    "trainer=oracle",
+    "agent.boards=3",
+    "agent.frames=36",
+    "agent.eval_every=36",
+    "agent.eval_episodes=1",
+    "agent.learn_after=12",
+    "agent.batch_size=8",
+    "agent.cells=[8]",
+    "agent.epsilon_start=0",
+    "agent.epsilon_end=0",
+]
+
+
+@pytest.mark.parametrize("human", ["linear", "mlp"])
+def test_tetris_dqn_fuses_every_collected_placement_and_acts_on_it(
+    tmp_path, run_learner, monkeypatch, fused_rows, tetris_actions, human
+):
+    learner, _ = run_learner(tmp_path / "spy", *DQN_TETRIS, f"human={human}")
+    collected = [r for r in fused_rows if r == learner.boards]
+    assert len(collected) >= learner.frames // learner.boards  # the collector's steps (and the evaluations')
+    monkeypatch.setattr(Fusion, "values", _last_choosable)
+    tetris_actions.clear()
+    run_learner(tmp_path / "forced", *DQN_TETRIS, f"human={human}")
+    assert len(tetris_actions) >= 20
+    for action, keep in tetris_actions:  # training (epsilon 0) and the greedy evaluations
+        assert torch.equal(action, keep.shape[-1] - 1 - keep.flip(-1).to(torch.int8).argmax(-1))
+
+
+@pytest.mark.parametrize("fusion", ["linear"])
+def test_keepaway_dqn_fuses_every_decision_and_acts_on_it(tmp_path, run_learner, monkeypatch, fusion):
+    from hfrl_torch.envs.keepaway import KeepawayEnv
+
+    taken: list[torch.Tensor] = []
+    original = KeepawayEnv._step
+
+    def spy(self, td):
+        deciding = td[keys.DECIDING]
+        taken.append(td[keys.ACTION][deciding].clone())
+        return original(self, td)
+
+    monkeypatch.setattr(KeepawayEnv, "_step", spy)
+    monkeypatch.setattr(Fusion, "values", _last_choosable)
+    run_learner(tmp_path, *DQN_KEEPAWAY, f"fusion={fusion}", "human=mlp")
+    actions = torch.cat(taken)
+    assert actions.numel() >= 36 and bool(
+        (actions == 2).all()
+    )  # the last action: a pass to the farther keeper
+
+
+@pytest.mark.parametrize("weight", ["0.5", "adaptive", "trust"])
+def test_dqn_reward_shaping_goes_through_the_component_with_every_weight(
+    tmp_path, run_learner, monkeypatch, weight
+):
+    calls: list[int] = []
+    original = Fusion.reward
+
+    def spy(self, reward, human, w):
+        calls.append(reward.numel())
+        return original(self, reward, human, w)
+
+    monkeypatch.setattr(Fusion, "reward", spy)
+    learner, _ = run_learner(tmp_path, *DQN_KEEPAWAY, "fusion=reward_shaping", f"fusion.weight={weight}")
+    assert len(calls) >= learner.frames // learner.boards  # every collected step's rewards
+    assert learner.episodes > 0

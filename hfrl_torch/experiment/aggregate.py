@@ -37,6 +37,8 @@ CURVES = (
     ("iteration", "eval/mean_policy_lines_mean"),  # CE, CE + feedback
     ("game", "eval/lines_per_game_mean"),  # TAMER and the other per-game Tetris learners
     ("episode", "eval/episode_seconds_mean"),  # keepaway learners
+    ("frames", "eval/greedy_lines_mean"),  # DQN on Tetris: the greedy policy's fresh games
+    ("frames", "eval/greedy_episode_seconds_mean"),  # DQN keepers: the greedy policy's fresh episodes
 )
 IGNORED = {"seed", "resume", "hydra", "logger", "threads", "device"}
 EFFORT = ("feedback_events", "trainer_minutes", "weight")  # per point, with a trainer
@@ -614,7 +616,9 @@ def aggregate(cfg: DictConfig) -> dict[str, object]:
     out = Path(str(cfg.out)) if cfg.get("out") else dirs[0]
     out.mkdir(parents=True, exist_ok=True)
     with (out / "summary.csv").open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]) if rows else ["condition"])
+        # every row's columns: an untaught reference has no effort_* columns, a taught condition does
+        fields = list(dict.fromkeys(k for r in rows for k in r)) if rows else ["condition"]
+        writer = csv.DictWriter(f, fieldnames=fields, restval="")
         writer.writeheader()
         writer.writerows(rows)
     (out / "summary.md").write_text(md + "\n")

@@ -39,7 +39,7 @@ from hfrl_torch.models.tile_coding import MAX_SIZE
 from hfrl_torch.trainers.departure import LEAVE_UNITS
 
 DOMAINS = ("tetris", "keepaway")
-AGENTS = ("cem", "tamer", "qlearning", "pg", "sarsa")
+AGENTS = ("cem", "tamer", "qlearning", "pg", "sarsa", "dqn")
 TRAINERS = ("none", "oracle", "value_proxy", "replay", "interactive")
 KEEPAWAY_TRAINERS = ("none", "oracle", "replay", "interactive")
 CREDITS = ("previous_step", "gamma", "uniform")
@@ -75,6 +75,9 @@ def validate_train(cfg: DictConfig) -> None:
     require_choice(cfg, "logger.backend", BACKENDS)
     require_int(cfg, "threads", 1, 256)
     check_device(cfg)
+    if agent == "dqn":
+        check_dqn(cfg)
+        return
     if (domain == "keepaway") != (agent == "sarsa"):
         raise ConfigError(
             f"domain={domain} agent={agent}: keepaway is learned by agent=sarsa, "
@@ -570,6 +573,130 @@ def check_keepaway_feedback(cfg: DictConfig) -> None:
                 f"trainer.reference={reference!r} learned {task.get('keepers')}v{task.get('takers')}, "
                 f"not {cfg.domain.keepers}v{cfg.domain.takers}"
             )
+    require_float(cfg, "trainer.frequency", 0.0, 1.0)
+    require_float(cfg, "trainer.consistency", 0.0, 1.0)
+    require_float(cfg, "trainer.reaction", 1e-6)
+    if require_bool(cfg, "trainer.timing.enabled"):
+        check_timing(cfg, tetris=False)
+
+
+# ------------------------------------------------------------------------- deep learners
+
+
+def check_dqn(cfg: DictConfig) -> None:
+    """DQN in either domain: its budget, network and exploration, H^ (``human``) and the trainer."""
+    domain = cfg.domain.name
+    if domain == "keepaway":
+        check_keepaway_domain(cfg)
+    else:
+        check_tetris_domain(cfg)
+    a = "agent."
+    require_int(cfg, a + "frames", 1)
+    require_int(cfg, a + "boards", 1, 4096)
+    require_int(cfg, a + "steps_per_batch", 1, 10_000)
+    require_int(cfg, a + "eval_every", 1)
+    require_int(cfg, a + "eval_episodes", 1, 10_000)
+    require_int(cfg, a + "learn_after", 0)
+    require_float(cfg, a + "frames_per_update", 1e-3)
+    require_int(cfg, a + "batch_size", 1, 1_000_000)
+    require_int(cfg, a + "buffer_size", 1, 10_000_000)
+    require_float(cfg, a + "lr", 1e-12)
+    require_float(cfg, a + "gamma", 0.0, 1.0)
+    require_float(cfg, a + "tau", 1e-9, 1.0)
+    require_bool(cfg, a + "double")
+    require_float(cfg, a + "epsilon_start", 0.0, 1.0)
+    require_float(cfg, a + "epsilon_end", 0.0, 1.0)
+    require_float(cfg, a + "epsilon_frames", 0.0)
+    check_cells(cfg, a + "cells")
+    if domain == "tetris":
+        require_choice(cfg, a + "features", FEATURE_SETS)
+        require_int(cfg, a + "eval_max_pieces", 1)
+    fusion, trainer = cfg.fusion.name, cfg.trainer.name
+    check_fusion(cfg)
+    if trainer == "none":
+        if fusion != "none":
+            raise ConfigError(
+                f"fusion={fusion!r} fuses a trainer's H^ with the DQN's Q; choose a trainer: oracle, replay "
+                "(or fusion=none)"
+            )
+        return
+    if trainer == "interactive":
+        raise ConfigError(
+            f"trainer=interactive with agent=dqn: the browser trainer teaches "
+            f"agent={'sarsa' if domain == 'keepaway' else 'cem'}; "
+            "agent=dqn takes a simulated trainer or a replay"
+        )
+    if OmegaConf.select(cfg, "trainer.leave_after") is not None:
+        raise ConfigError("trainer.leave_after is not available with agent=dqn yet; allowed: null")
+    human = require_choice(cfg, "human.name", ("mlp", "tile_coded" if domain == "keepaway" else "linear"))
+    if human == "mlp":
+        check_mlp_human(cfg)
+    else:
+        check_human(cfg, human)
+    if domain == "keepaway":
+        if trainer not in KEEPAWAY_TRAINERS:
+            raise ConfigError(
+                f"trainer={trainer} is not available for keepaway; allowed: none, oracle, replay"
+            )
+        check_keepaway_feedback_trainer(cfg)
+        return
+    features, q_features = str(cfg.human.features), str(cfg.agent.features)
+    if q_features not in (features, "bt") or (q_features == "bt" and features not in ("bt", "knox")):
+        raise ConfigError(
+            f"agent.features={q_features!r} with human.features={features!r}: the env computes H^'s features "
+            "and Q reads their first columns; allowed: agent.features=bt (a prefix of knox) or H^'s own set"
+        )
+    check_tetris_trainer(cfg)
+
+
+def check_cells(cfg: DictConfig, key: str) -> list[int]:
+    """A network's hidden layer widths: a list of integers in 1..4096 (an empty list: linear)."""
+    cells = OmegaConf.select(cfg, key)
+    values = list(cells) if OmegaConf.is_list(cells) else None
+    if values is None or not all(
+        isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= 4096 for v in values
+    ):
+        raise ConfigError(
+            f"{key}={cells!r} is invalid; allowed: a list of layer widths in 1..4096, e.g. [64, 64]"
+        )
+    return values
+
+
+def check_mlp_human(cfg: DictConfig) -> None:
+    """``human=mlp``: Deep TAMER's network, its Adam step, replay buffer and credit."""
+    h = "human."
+    check_cells(cfg, h + "cells")
+    require_float(cfg, h + "lr", 1e-12)
+    require_int(cfg, h + "batch_size", 1, 1_000_000)
+    require_int(cfg, h + "buffer_size", 1, 10_000_000)
+    require_int(cfg, h + "replay_every", 1)
+    require_int(cfg, h + "history", 1, 1024)
+    require_float(cfg, h + "scale", 1e-12)
+    name = require_choice(cfg, h + "credit", CREDITS)
+    if name == "gamma":
+        require_float(cfg, h + "gamma_shape", 1e-6)
+        require_float(cfg, h + "gamma_scale", 1e-6)
+    elif name == "uniform":
+        low = require_float(cfg, h + "uniform_low", 0.0)
+        require_float(cfg, h + "uniform_high", low + 1e-6)
+    require_float(cfg, h + "window", 1e-6)
+    require_bool(cfg, h + "renormalise")
+    if cfg.domain.name == "tetris":
+        require_choice(cfg, h + "features", ("knox", "bt"))
+        require_float(cfg, h + "seconds_per_placement", 1e-6)
+
+
+def check_keepaway_feedback_trainer(cfg: DictConfig) -> None:
+    """The keepaway trainer of a deep learner: the simulated oracle (against the hand-coded keepers or a
+    checkpoint) or a replayed log."""
+    if cfg.trainer.name == "replay":
+        check_replay_log(cfg)
+        return
+    if OmegaConf.select(cfg, "trainer.reference") not in (None, "hand"):
+        raise ConfigError(
+            f"trainer.reference={cfg.trainer.reference!r} with agent=dqn: the oracle judges against the "
+            "hand-coded keepers; allowed: null, hand"
+        )
     require_float(cfg, "trainer.frequency", 0.0, 1.0)
     require_float(cfg, "trainer.consistency", 0.0, 1.0)
     require_float(cfg, "trainer.reaction", 1e-6)

@@ -30,6 +30,7 @@ from hfrl_torch.envs.tetris.features import DELLACHERIE_WEIGHTS, feature_id, fea
 from hfrl_torch.experiment.aggregate import aggregate
 from hfrl_torch.experiment.cli import checked
 from hfrl_torch.experiment.config import check_kernels, validate_evaluate
+from hfrl_torch.experiment.dqn_players import evaluate_dqn_keepaway, evaluate_dqn_tetris, is_dqn
 from hfrl_torch.experiment.factories import (
     make_keepaway_config,
     make_rollout,
@@ -84,6 +85,13 @@ def evaluate_tetris(cfg: DictConfig, progress: bool = True) -> dict[str, object]
     """Play ``games`` games of ``policy`` and return the summary that evaluate.py prints as JSON."""
     games = int(cfg.games)
     threads = set_threads(cfg)
+    if cfg.policy is not None and str(cfg.policy) not in NAMED_POLICIES and Path(str(cfg.policy)).exists():
+        ckpt = load_checkpoint(Path(str(cfg.policy)), domain="tetris")
+        if is_dqn(ckpt):
+            explicit = [o for o in _task_overrides() if o.startswith("domain.")]
+            saved = OmegaConf.create(ckpt["config"])
+            board = OmegaConf.merge(cfg, {"domain": saved.domain}, OmegaConf.from_dotlist(explicit))
+            return evaluate_dqn_tetris(board, ckpt, ckpt["path"])
     label, features, weights, random_policy, cfg, fused = _tetris_policy(cfg)
     rules = make_rules(cfg)
     if weights.numel() != feature_size(feature_id(features), rules.width):
@@ -205,6 +213,8 @@ def evaluate_keepaway(cfg: DictConfig, progress: bool = True) -> dict[str, objec
         ckpt, config = _keepaway_checkpoint(policy)
         config = config.replace(kernels=check_kernels(cfg))
     set_threads(cfg)
+    if ckpt is not None and is_dqn(ckpt):
+        return evaluate_dqn_keepaway(cfg, ckpt, config, ckpt["path"])
     options = asdict(config)
     options.pop("preset"), options.pop("keepers"), options.pop("takers")
     task = {"preset": config.preset, "keepers": config.keepers, "takers": config.takers, **options}

@@ -8,12 +8,16 @@ from collections.abc import Callable
 import numba
 import torch
 from omegaconf import DictConfig, OmegaConf
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModule
 
 from hfrl_torch.agents.cem import CEMConfig
 from hfrl_torch.agents.cem.cem import Rollout
+from hfrl_torch.agents.dqn import DeepQ, SharedTileTamer
 from hfrl_torch.agents.sarsa import SarsaLambda, sarsa_keepers
 from hfrl_torch.agents.sarsa.policy import load_keeper_policy
 from hfrl_torch.agents.tamer import TamerAgent
+from hfrl_torch.agents.tamer.deep_tamer import DeepTamer
 from hfrl_torch.agents.tamer.keeper_tamer import KeeperTamer
 from hfrl_torch.common.checkpoint import load_checkpoint
 from hfrl_torch.envs.keepaway import KeepawayConfig
@@ -42,7 +46,7 @@ from hfrl_torch.interactive.live import DEFAULT_SPEED, KEY_NAMES, LiveTeaching
 from hfrl_torch.interactive.server import TeachingServer
 from hfrl_torch.interactive.session import TeachingSession
 from hfrl_torch.interactive.tetris_live import BrowserTetrisTrainer
-from hfrl_torch.models.tile_coding import TileCoding
+from hfrl_torch.models.tile_coding import TileCoding, keepaway_tile_widths
 from hfrl_torch.trainers import HumanLikeTiming, OracleTrainer, ReplayTrainer, Trainer, ValueProxyTrainer
 from hfrl_torch.trainers.departure import Departure
 from hfrl_torch.trainers.keepaway_oracle import KeepawayOracle
@@ -401,3 +405,69 @@ def make_keepers(cfg: DictConfig, config: KeepawayConfig, device: torch.device) 
         seed=int(cfg.seed),
         device=device,
     )
+
+
+# -------------------------------------------------------------------------- deep learners
+
+
+def make_dqn(
+    cfg: DictConfig,
+    model: torch.nn.Module,
+    in_key: str,
+    mask_key: str,
+    pre: tuple[TensorDictModule, ...] = (),
+) -> DeepQ:
+    """The DQN of ``agent`` (TorchRL's loss, target and replay buffer) around the Q network ``model``."""
+    a = cfg.agent
+    return DeepQ(
+        model,
+        in_key,
+        mask_key,
+        pre,
+        lr=float(a.lr),
+        gamma=float(a.gamma),
+        tau=float(a.tau),
+        double=bool(a.double),
+        buffer_size=int(a.buffer_size),
+        batch_size=int(a.batch_size),
+        seed=2 * int(cfg.seed) + 11,
+    )
+
+
+def make_deep_tamer(
+    cfg: DictConfig, model: torch.nn.Module, inputs: Callable[[TensorDictBase], torch.Tensor], boards: int
+) -> DeepTamer:
+    """Deep TAMER (``human=mlp``): the network ``model`` over ``inputs``, shared by ``boards`` boards."""
+    h = cfg.human
+    return DeepTamer(
+        model,
+        inputs,
+        boards,
+        lr=float(h.lr),
+        credit=make_credit(cfg),
+        window=float(h.window),
+        renormalise=bool(h.renormalise),
+        history=int(h.history),
+        buffer_size=int(h.buffer_size),
+        batch_size=int(h.batch_size),
+        replay_every=int(h.replay_every),
+        seed=2 * int(cfg.seed) + 13,
+    )
+
+
+def make_shared_tile_tamer(cfg: DictConfig, config: KeepawayConfig, fields: int) -> SharedTileTamer:
+    """The tile-coded keepaway H^ (``human=tile_coded``) of one learner, shared by its ``fields``."""
+    h = cfg.human
+    model = TileCoding(
+        keepaway_tile_widths(config.keepers, config.takers), num_actions=config.num_actions, learners=1
+    )
+    tamer = KeeperTamer(
+        model,
+        fields,
+        alpha=h.alpha,
+        credit=make_credit(cfg),
+        window=h.window,
+        history=h.history,
+        renormalise=h.renormalise,
+    )
+    return SharedTileTamer(tamer)

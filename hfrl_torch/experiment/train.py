@@ -56,7 +56,7 @@ def train(cfg: DictConfig) -> TrainResult:
     print(f"Run directory: {run_dir}  ({domain}, {agent}, threads={threads})", file=sys.stderr)
     choices = " ".join(f"{g}={cfg[g].name}" for g in ("domain", "agent", "human", "fusion", "trainer"))
     print(f"Choices: {choices}", file=sys.stderr)
-    learner = learner_for(agent)(cfg, run_dir, checkpoint)
+    learner = learner_for(agent, domain)(cfg, run_dir, checkpoint)
     files = RunFiles(run_dir, cfg)
     interrupt = Interrupt()
     interrupt.install()

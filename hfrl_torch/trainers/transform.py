@@ -3,7 +3,8 @@
 At each step the trainer (a simulated one, a replay, a person through the queue) judges the action taken in
 the step's state; its events go into a :class:`~hfrl_torch.feedback.channel.FeedbackChannel` and, once due
 on the simulated clock (``seconds_per_step`` per env step), come out into ``("next", keys.FEEDBACK*)``: the
-person's reward of the step, next to the environment's. A ``FeedbackFusion(..., feedback_key=keys.FEEDBACK)``
+person's reward of the step, next to the environment's, with ``keys.CLOCK`` (when the next action is taken)
+so that a learner can credit them to its recent steps. A ``FeedbackFusion(..., feedback_key=keys.FEEDBACK)``
 after it in a ``Compose`` fuses the two, so any TorchRL learner (a collector, a replay buffer, a loss) trains
 on the fused reward. The training loops of ``train.py`` use the same trainers and channel directly.
 """
@@ -35,7 +36,7 @@ class HumanFeedback(Transform):
     def __init__(self, trainer: Trainer, seconds_per_step: float = 1.0, slots: int = 4) -> None:
         if not seconds_per_step > 0:
             raise ValueError(f"HumanFeedback seconds_per_step must be > 0, got {seconds_per_step!r}")
-        out = [keys.FEEDBACK, keys.FEEDBACK_TIME, keys.FEEDBACK_MASK, keys.FEEDBACK_SOURCE]
+        out = [keys.FEEDBACK, keys.FEEDBACK_TIME, keys.FEEDBACK_MASK, keys.FEEDBACK_SOURCE, keys.CLOCK]
         super().__init__(in_keys=[keys.ACTION], out_keys=out)
         self.trainer, self.seconds_per_step, self.slots = trainer, float(seconds_per_step), int(slots)
         self.channel: FeedbackChannel | None = None
@@ -61,6 +62,7 @@ class HumanFeedback(Transform):
         channel.put_events(events)
         self.steps += 1
         next_tensordict.update(channel.deliver(self.clock).reshape(batch))
+        next_tensordict.set(keys.CLOCK, torch.full(batch, self.clock, dtype=torch.float64))
         done = next_tensordict.get(keys.DONE).reshape(-1)
         if bool(done.any()):
             self.trainer.end_games(done, next_tensordict.get(keys.LINES).reshape(-1))
@@ -69,7 +71,8 @@ class HumanFeedback(Transform):
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         batch = tensordict_reset.batch_size
-        return tensordict_reset.update(self._state(batch.numel()).empty().reshape(batch))
+        tensordict_reset.update(self._state(batch.numel()).empty().reshape(batch))
+        return tensordict_reset.set(keys.CLOCK, torch.full(batch, self.clock, dtype=torch.float64))
 
     def transform_observation_spec(self, observation_spec: TensorSpec) -> TensorSpec:
         shape, device = (*observation_spec.shape, self.slots), observation_spec.device
@@ -83,6 +86,9 @@ class HumanFeedback(Transform):
             n=self.slots, shape=shape, dtype=torch.bool, device=device
         )
         observation_spec[keys.FEEDBACK_SOURCE] = Unbounded(shape=shape, dtype=torch.int64, device=device)
+        observation_spec[keys.CLOCK] = Unbounded(
+            shape=observation_spec.shape, dtype=torch.float64, device=device
+        )
         return observation_spec
 
     def get_extra_state(self) -> dict[str, Any]:
