@@ -126,7 +126,10 @@ def main() -> None:
     parser.add_argument("--perception", default="exact", choices=("exact", "server"))
     parser.add_argument("--threads", type=int, nargs="+", default=[1], help="thread counts to time")
     parser.add_argument(
-        "--cycle-factor", type=int, default=50, help="the whole-cycle path runs this many times more cycles"
+        "--cycle-field-cycles",
+        type=int,
+        default=200_000,
+        help="field-cycles per timed run of the whole-cycle path (at least --cycles cycles)",
     )
     parser.add_argument("--no-env", action="store_true", help="skip the TorchRL env")
     args = parser.parse_args()
@@ -159,7 +162,7 @@ def main() -> None:
                     rates[b].update(
                         simulator_rates(
                             b,
-                            args.cycles * args.cycle_factor,
+                            max(args.cycles, args.cycle_field_cycles // b),
                             device,
                             args.preset,
                             ["cycle"],
