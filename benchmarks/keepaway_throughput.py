@@ -2,9 +2,12 @@
 
 Runs the batched simulator with the Hand-coded keepers deciding inside each cycle (the
 benchmark-policy path) and, separately, the TorchRL env (SMDP steps, fields waiting for the
-slowest one), for B = 1, 64, 1024, 8192. On CPU the simulator runs twice, side by side: with the
-numba kernels (the default there) and with the pure-torch path as the reference. Prints one
-JSON object. One torch thread; the numba kernels are serial loops. ``--perception server`` (with
+slowest one), for B = 1, 64, 1024, 8192. On CPU the simulator runs three ways, side by side: with
+the per-search numba kernels (the default there), with the pure-torch path as the reference, and
+with whole cycles compiled (``kernels=cycle``: the hand-coded keepers decide inside the compiled
+loop, ``KeepawaySimulator.play_policy``). Prints one JSON object, per thread count of
+``--threads`` (torch's and numba's; the whole-cycle kernels split the fields over the threads).
+``--perception server`` (with
 the reference HoldBall rule and decision timing, the domain config's defaults) times every player
 acting on its own world model; ``exact`` the true state.
 
@@ -18,6 +21,7 @@ import argparse
 import json
 import time
 
+import numba
 import torch
 
 torch.set_num_threads(1)
@@ -62,27 +66,42 @@ def simulator_rates(
         obs, _ = sim.observe(sim.decision().holder)
         sim.step(hand_coded_actions(obs, sim.config.keepers, sim.config.takers), auto_reset=True)
 
+    def run(sim: KeepawaySimulator) -> None:
+        if sim.kernels == "cycle":  # every field plays ``cycles`` cycles in one compiled call
+            sim.play_policy("hand", episodes_per_field=cycles, max_cycles=cycles)
+            return
+        for _ in range(cycles):
+            one_cycle(sim)
+
     for sim in sims.values():
         for _ in range(3):  # includes numba's compilation (or loading it from the cache)
             one_cycle(sim)
+        if sim.kernels == "cycle":
+            sim.play_policy("hand", episodes_per_field=3, max_cycles=3)
     best = dict.fromkeys(sims, float("inf"))
     for _ in range(repeats):
         for name, sim in sims.items():
             if device == "cuda":
                 torch.cuda.synchronize()
             start = time.perf_counter()
-            for _ in range(cycles):
-                one_cycle(sim)
+            run(sim)
             if device == "cuda":
                 torch.cuda.synchronize()
             best[name] = min(best[name], time.perf_counter() - start)
     return {name: batch * cycles / seconds for name, seconds in best.items()}
 
 
-def env_rate(batch: int, steps: int, device: str, preset: str, perception: str = "exact") -> dict[str, float]:
+def env_rate(
+    batch: int, steps: int, device: str, preset: str, perception: str = "exact", kernels: str = "auto"
+) -> dict[str, float]:
     """Active field-cycles and SMDP steps per second of the TorchRL env (hand-coded keepers)."""
-    env = KeepawayEnv(batch, device=device, seed=0, **task(preset, perception))
+    env = KeepawayEnv(batch, device=device, seed=0, kernels=kernels, **task(preset, perception))
     td = env.reset()
+    for _ in range(2):  # warm-up (compilation or loading the kernels)
+        td.set(keys.ACTION, hand_coded_actions(td[keys.OBSERVATION], 3, 2))
+        td = env.step(td)["next"]
+        if td[keys.DONE].any():
+            td = env.reset(td.clone().set(keys.RESET, td[keys.DONE].clone()))
     cycles = 0
     start = time.perf_counter()
     for _ in range(steps):
@@ -105,30 +124,73 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=1, help="timed simulator runs; the best is reported")
     parser.add_argument("--devices", nargs="+", help="default: cpu, and cuda when present")
     parser.add_argument("--perception", default="exact", choices=("exact", "server"))
+    parser.add_argument("--threads", type=int, nargs="+", default=[1], help="thread counts to time")
+    parser.add_argument(
+        "--cycle-field-cycles",
+        type=int,
+        default=200_000,
+        help="field-cycles per timed run of the whole-cycle path (at least --cycles cycles)",
+    )
+    parser.add_argument("--no-env", action="store_true", help="skip the TorchRL env")
     args = parser.parse_args()
     devices = args.devices or ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
     result: dict[str, object] = {
-        "threads": torch.get_num_threads(),
         "preset": args.preset,
         "perception": args.perception,
-        "simulator": {},
-        "env": {},
+        "cycles": args.cycles,
+        "cycle_kernel_field_cycles": args.cycle_field_cycles,
+        "runs": {},
     }
-    for device in devices:
-        kernels = ["numba", "torch"] if device == "cpu" else ["torch"]
-        rates = {
-            b: simulator_rates(b, args.cycles, device, args.preset, kernels, args.repeats, args.perception)
-            for b in args.batches
-        }
-        result["simulator"][device] = {k: {str(b): round(rates[b][k]) for b in args.batches} for k in kernels}
-        result["env"][device] = {
-            str(b): {
-                k: round(v)
-                for k, v in env_rate(b, args.env_steps, device, args.preset, args.perception).items()
+    for threads in args.threads:
+        numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+        torch.set_num_threads(threads)
+        run: dict[str, object] = {"simulator": {}, "env": {}}
+        for device in devices:
+            kernels = ["numba", "torch", "cycle"] if device == "cpu" else ["torch"]
+            rates = {}
+            for b in args.batches:
+                rates[b] = simulator_rates(
+                    b,
+                    args.cycles,
+                    device,
+                    args.preset,
+                    [k for k in kernels if k != "cycle"],
+                    args.repeats,
+                    args.perception,
+                )
+                if "cycle" in kernels:
+                    rates[b].update(
+                        simulator_rates(
+                            b,
+                            max(args.cycles, args.cycle_field_cycles // b),
+                            device,
+                            args.preset,
+                            ["cycle"],
+                            args.repeats,
+                            args.perception,
+                        )
+                    )
+            run["simulator"][device] = {
+                k: {str(b): round(rates[b][k]) for b in args.batches} for k in kernels
             }
-            for b in args.batches
-            if b <= 1024
-        }
+            if not args.no_env:
+                run["env"][device] = {
+                    f"{b} {k}": {
+                        name: round(v)
+                        for name, v in env_rate(
+                            b,
+                            args.env_steps * (50 if k == "cycle" else 1),
+                            device,
+                            args.preset,
+                            args.perception,
+                            k,
+                        ).items()
+                    }
+                    for b in args.batches
+                    if b <= 1024
+                    for k in (["auto", "cycle"] if device == "cpu" else ["auto"])
+                }
+        result["runs"][str(threads)] = run
     print(json.dumps(result, indent=2))
 
 

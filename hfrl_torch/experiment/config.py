@@ -476,9 +476,9 @@ def check_kernels(cfg: DictConfig) -> str:
     """``domain.kernels``, checked against ``device``."""
     kernels = require_choice(cfg, "domain.kernels", KERNELS)
     device = str(OmegaConf.select(cfg, "device", default="cpu"))
-    if kernels == "numba" and device != "cpu":
+    if kernels in ("numba", "cycle") and device != "cpu":
         raise ConfigError(
-            f"domain.kernels='numba' runs on the CPU only, not device={device}; "
+            f"domain.kernels={kernels!r} runs on the CPU only, not device={device}; "
             "use domain.kernels=auto or torch"
         )
     return kernels

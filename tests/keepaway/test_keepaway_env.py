@@ -40,13 +40,15 @@ SERVER = {"perception": "server", "hold_ball": "reference", "decision_timing": "
         {"keepers": 4, "takers": 3},
         SERVER,
         {"keepers": 4, "takers": 3, "decision_period_cycles": 5, **SERVER},
+        {"kernels": "cycle", **SERVER},
+        {"kernels": "cycle", "keepers": 4, "takers": 3, "decision_period_cycles": 5},
     ],
 )
 def test_check_env_specs(options: dict, sync: str) -> None:
     check_env_specs(KeepawayEnv(3, seed=1, sync=sync, **options))
 
 
-@pytest.mark.parametrize("options", [{}, SERVER])
+@pytest.mark.parametrize("options", [{}, SERVER, {"kernels": "cycle", **SERVER}])
 @pytest.mark.parametrize("sync", SYNCS)
 def test_partial_reset_changes_only_flagged_fields(sync: str, options: dict) -> None:
     env = KeepawayEnv(4, seed=2, sync=sync, **options)
@@ -179,7 +181,14 @@ def test_same_seed_same_episode() -> None:
 
 
 @pytest.mark.parametrize(
-    "sync,steps,options", [("all", 30, {}), ("any", 400, {}), ("any", 300, {"perception": "server"})]
+    "sync,steps,options",
+    [
+        ("all", 30, {}),
+        ("any", 400, {}),
+        ("any", 300, {"perception": "server"}),
+        ("all", 30, {"kernels": "cycle"}),
+        ("any", 300, {"perception": "server", "kernels": "cycle"}),
+    ],
 )
 def test_rewards_count_cycles_per_keeper(sync: str, steps: int, options: dict) -> None:
     """Deciding fields get cycles since that keeper's last decision, ended fields the end rewards,

@@ -25,7 +25,7 @@ from torchrl.envs import EnvBase
 
 from hfrl_torch import keys
 from hfrl_torch.envs.keepaway.params import KeepawayConfig
-from hfrl_torch.envs.keepaway.simulator import KeepawaySimulator
+from hfrl_torch.envs.keepaway.simulator import Decision, KeepawaySimulator
 
 EPISODE_END_REWARDS = keys.EPISODE_END_REWARDS
 STEP_CYCLES = keys.STEP_CYCLES
@@ -157,11 +157,20 @@ class KeepawayEnv(EnvBase):
             raise RuntimeError("keepaway: no decision within max_cycles_per_step cycles")
         return ended, cause, cycles
 
-    def _write_decisions(self, fields: torch.Tensor) -> None:
+    def _decisions(self) -> tuple[Decision, torch.Tensor]:
+        """The simulator's decision and the holder's state variables (one compiled call on the
+        whole-cycle path)."""
+        if self.sim.compiled is not None:
+            return self.sim.compiled_decisions()
+        dec = self.sim.decision()
+        return dec, self.sim.observe(dec.holder)[0]
+
+    def _write_decisions(
+        self, fields: torch.Tensor, decided: tuple[Decision, torch.Tensor] | None = None
+    ) -> None:
         """Store the observation of the keeper with the ball on ``fields`` [B], and which fields
         (alive, keeper with the ball free to choose) decide now."""
-        dec = self.sim.decision()
-        obs, _ = self.sim.observe(dec.holder)
+        dec, obs = self._decisions() if decided is None else decided
         out = self._outputs
         f = fields
         out[keys.OBSERVATION] = torch.where(f[:, None], obs.to(torch.float32), out[keys.OBSERVATION])
@@ -192,7 +201,9 @@ class KeepawayEnv(EnvBase):
         else:
             mask = torch.ones(self.batch_size, dtype=torch.bool, device=self.device)
         self.sim.reset(mask)
-        if self.sync == "all":  # "any": the restarted fields reach their first decision in later steps
+        if self.sync == "all" and self.sim.compiled is not None:
+            self.sim.advance(None, mask, first=False, restart=True, max_cycles=self.max_cycles_per_step)
+        elif self.sync == "all":  # "any": the restarted fields reach their first decision in later steps
             self._run_until_decision(mask, restart_ended=True)
         out = self._outputs
         out[keys.END_CAUSE] = torch.where(mask, 0, out[keys.END_CAUSE])
@@ -208,18 +219,28 @@ class KeepawayEnv(EnvBase):
         alive = ~self._done
         # the simulator reads an action only where the keeper must decide: in both modes exactly the
         # fields flagged "deciding" by the previous step or reset, so other fields' actions are ignored
-        first = sim.step(actions, active=alive)
-        ended, cause = first.ended.clone(), first.end_cause.clone()
-        if self.sync == "all":
-            later_ended, later_cause, cycles = self._run_until_decision(alive & ~ended, restart_ended=False)
+        if sim.compiled is not None:  # the whole step in one compiled call
+            advanced = sim.advance(actions, alive, sync=self.sync, max_cycles=self.max_cycles_per_step)
+            cause, cycles = advanced.cause, advanced.cycles
+            ended = cause != 0
         else:
-            later_ended, later_cause, cycles = self._run_until_any_decision(alive & ~ended, bool(ended.any()))
-        ended |= later_ended
-        cause = torch.where(later_ended, later_cause, cause)
-        cycles = cycles + alive.long()
+            first = sim.step(actions, active=alive)
+            ended, cause = first.ended.clone(), first.end_cause.clone()
+            if self.sync == "all":
+                later_ended, later_cause, cycles = self._run_until_decision(
+                    alive & ~ended, restart_ended=False
+                )
+            else:
+                later_ended, later_cause, cycles = self._run_until_any_decision(
+                    alive & ~ended, bool(ended.any())
+                )
+            ended |= later_ended
+            cause = torch.where(later_ended, later_cause, cause)
+            cycles = cycles + alive.long()
 
         state = sim.state
-        dec = sim.decision()
+        decided = self._decisions()
+        dec = decided[0]
         deciding = alive & ~ended & dec.must_decide
         last = state.last_decision.gather(1, dec.holder.unsqueeze(-1)).squeeze(-1)
         decision_reward = torch.where(last >= 0, state.episode_cycles - last, torch.zeros_like(last))
@@ -230,7 +251,7 @@ class KeepawayEnv(EnvBase):
         )
 
         self._done = self._done | ended
-        self._write_decisions(alive)
+        self._write_decisions(alive, decided)
         out = self._outputs
         out[keys.END_CAUSE] = torch.where(ended, cause, torch.where(alive, 0, out[keys.END_CAUSE]))
         end_rewards = sim.episode_end_rewards().to(torch.float32)

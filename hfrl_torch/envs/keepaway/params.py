@@ -61,23 +61,24 @@ def physics_preset(name: str) -> PhysicsParams:
     raise ValueError(f"unknown keepaway preset {name!r}; expected one of {PRESETS}")
 
 
-KERNELS = ("auto", "numba", "torch")
+KERNELS = ("auto", "numba", "torch", "cycle")
 PERCEPTIONS = ("exact", "server")
 HOLD_RULES = ("spec", "reference")
 DECISION_TIMINGS = ("cycle", "server")
 
 
 def resolve_kernels(kernels: str, device: torch.device, dtype: torch.dtype = torch.float32) -> str:
-    """``"numba"`` or ``"torch"``: how the searches and the collision passes run (``"auto"`` is
-    numba for float32 on CPU, torch otherwise; both give the same bits)."""
+    """``"numba"``, ``"torch"`` or ``"cycle"``: how a cycle runs (``"auto"`` is numba for float32 on
+    CPU, torch otherwise). ``"numba"`` and ``"torch"`` give the same bits; ``"cycle"`` (whole cycles
+    compiled, float32 on CPU) agrees with them within float32 rounding."""
     if kernels not in KERNELS:
         raise ValueError(f"kernels={kernels!r} is invalid; allowed: {', '.join(KERNELS)}")
     fits = device.type == "cpu" and dtype == torch.float32
     if kernels == "auto":
         return "numba" if fits else "torch"
-    if kernels == "numba" and not fits:
+    if kernels in ("numba", "cycle") and not fits:
         raise ValueError(
-            f"kernels='numba' runs float32 on the CPU only, not {dtype} on {device}; use kernels='torch'"
+            f"kernels={kernels!r} runs float32 on the CPU only, not {dtype} on {device}; use kernels='torch'"
         )
     return kernels
 
@@ -99,9 +100,10 @@ class KeepawayConfig:
         5 = 500 ms as in the thesis's human-feedback experiments).
     :param intercept_horizon: look-ahead of GoToBall in cycles.
     :param collision_passes: maximal passes of the collision resolution.
-    :param kernels: how GoToBall's and GetOpen's searches and the collision passes run, not what
-        they compute: ``"auto"`` (numba for float32 on CPU, torch otherwise), ``"numba"`` or
-        ``"torch"``.
+    :param kernels: how a cycle runs, not what it computes: ``"auto"`` (numba for float32 on CPU,
+        torch otherwise), ``"numba"`` (GoToBall's and GetOpen's searches and the collision passes
+        compiled, the same bits as torch), ``"torch"``, or ``"cycle"`` (whole cycles and the SMDP
+        advance compiled per field, float32 on CPU; within float32 rounding of torch).
     :param perception: what the players know: ``"exact"`` (every player sees the true state every
         cycle) or ``"server"`` (each player acts on its own world model, refreshed by the server's
         quantised see message every 150 ms and extrapolated in between, as the UT keepaway players'

@@ -11,9 +11,11 @@ import dataclasses
 import functools
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
+from hfrl_torch.envs.keepaway.compiled_cycle import Advance, CompiledCycle
 from hfrl_torch.envs.keepaway.keepers import fastest_keeper, keeper_commands
 from hfrl_torch.envs.keepaway.params import KeepawayConfig, resolve_kernels
 from hfrl_torch.envs.keepaway.perception import extrapolate, observe, own_truth, see_phases, sees_now
@@ -115,7 +117,9 @@ class KeepawayState:
 
     def clone(self) -> KeepawayState:
         """A deep copy."""
-        return dataclasses.replace(self, **{k: v.clone() for k, v in self.tensors().items()})
+        return dataclasses.replace(
+            self, **{k: v.clone(memory_format=torch.contiguous_format) for k, v in self.tensors().items()}
+        )
 
     def field(self, index: int) -> KeepawayState:
         """The state of one field as a batch of one."""
@@ -209,11 +213,14 @@ class KeepawaySimulator:
             keepers=n,
             takers=m,
         )
+        self.compiled = CompiledCycle(self.config, batch_size, seed) if self.kernels == "cycle" else None
         self.reset()
 
     def seed(self, seed: int) -> None:
-        """Re-seed the simulator's generator."""
+        """Re-seed the simulator's generator (and the compiled path's per-field streams)."""
         self.generator.manual_seed(seed)
+        if self.compiled is not None:
+            self.compiled.reseed(seed)
 
     # ------------------------------------------------------------------ episode control
 
@@ -500,6 +507,8 @@ class KeepawaySimulator:
         batch, n, m = self.batch_size, cfg.keepers, cfg.takers
         if active is None:
             active = torch.ones(batch, dtype=torch.bool, device=self.device)
+        if self.compiled is not None:
+            return self._step_compiled(actions, active, auto_reset)
         dec = self.decision(s)
         holder = dec.holder
         # record the new decisions
@@ -601,3 +610,94 @@ class KeepawaySimulator:
         if auto_reset and bool(ended.any()):
             self.reset(ended)
         return outcome
+
+    # ------------------------------------------------------------- whole cycles compiled
+
+    def _torch_uniforms(self) -> np.ndarray:
+        """The uniforms [B, U] one torch-path cycle draws from the generator, in its order (kick
+        noise, turn noise, movement noise, withheld see information), laid out per field."""
+        cfg, p, s = self.config, self.physics, self.state
+        batch, players = self.batch_size, cfg.keepers + cfg.takers
+        objects = players + 1
+        parts = []
+        if cfg.movement_noise:
+            kick = self._uniforms(batch, players, 2) if p.kick_rand > 0 else torch.zeros(batch, players, 2)
+            parts += [
+                kick.reshape(batch, -1),
+                self._uniforms(batch, players),
+                self._uniforms(batch, objects, 2).reshape(batch, -1),
+            ]
+        if self.server_perception:
+            sees = sees_now(s.clock + 1, s.see_phase)
+            seen = (
+                self._uniforms(batch, players, objects)
+                if bool(sees.any())
+                else torch.zeros(batch, players, objects)
+            )
+            parts.append(seen.reshape(batch, -1))
+        if not parts:
+            return np.zeros((batch, 1))
+        return torch.cat(parts, dim=1).double().numpy()
+
+    def _step_compiled(self, actions: Tensor | None, active: Tensor, auto_reset: bool) -> CycleOutcome:
+        """:meth:`step` by the whole-cycle kernel on a copy of the state, with the torch path's draws."""
+        if actions is None:
+            actions = torch.zeros(self.batch_size, dtype=torch.long)
+        uniforms = self._torch_uniforms()
+        state = self.state.clone()
+        cause = self.compiled.cycle(state, actions.long().contiguous(), active.contiguous(), uniforms)
+        self.state = state
+        ended = active & (cause != END_RUNNING)
+        outcome = CycleOutcome(
+            ended=ended,
+            end_cause=cause,
+            episode_cycles=state.episode_cycles,
+            episode_end_rewards=self.episode_end_rewards(),
+        )
+        if auto_reset and bool(ended.any()):
+            self.reset(ended)
+        return outcome
+
+    def compiled_decisions(self) -> tuple[Decision, Tensor]:
+        """``kernels="cycle"``: :meth:`decision` and the holder's state variables [B, F] in one
+        compiled call."""
+        holder, kickable, must, obs = self._require_compiled().decisions(self.state)
+        return Decision(holder=holder, kickable=kickable, must_decide=must), obs
+
+    def advance(
+        self,
+        actions: Tensor | None,
+        running: Tensor,
+        *,
+        sync: str = "all",
+        first: bool = True,
+        restart: bool = False,
+        max_cycles: int = 100_000,
+    ) -> Advance:
+        """``kernels="cycle"``: advance the ``running`` fields to their next decision in one compiled
+        call (SMDP steps). With ``first`` a first cycle applies ``actions`` (as :meth:`step`);
+        ``sync="all"`` runs every field until its holder must decide or its episode ends (restarted
+        and played on with ``restart``), ``sync="any"`` runs all in lock-step until one decides or
+        ends. The state's tensors change in place; randomness comes from per-field streams."""
+        compiled = self._require_compiled()
+        if actions is None:
+            actions = torch.zeros(self.batch_size, dtype=torch.long)
+        running = running.contiguous()
+        go = running.clone() if first else torch.zeros_like(running)
+        return compiled.advance(
+            self.state, actions.long().contiguous(), go, running, sync, restart, max_cycles
+        )
+
+    def play_policy(
+        self, policy: str, episodes_per_field: int, max_cycles: int = 1 << 40
+    ) -> tuple[Tensor, Tensor, Tensor, int]:
+        """``kernels="cycle"``: benchmark keepers (``"hold"``, ``"random"``, ``"hand"``) deciding
+        inside each cycle on every field until it has played ``episodes_per_field`` episodes (or
+        ``max_cycles`` cycles), in one compiled call: durations [B, E] (cycles), end causes [B, E],
+        episodes played [B] and the field-cycles simulated."""
+        return self._require_compiled().play(self.state, policy, episodes_per_field, max_cycles)
+
+    def _require_compiled(self) -> CompiledCycle:
+        if self.compiled is None:
+            raise ValueError(f"this call needs kernels='cycle', not kernels={self.config.kernels!r}")
+        return self.compiled

@@ -1,0 +1,267 @@
+"""The glue between :class:`KeepawaySimulator` and the whole-cycle numba kernels (cycle_numba.py):
+the task's constants as arrays, one random stream per field, and the state's tensors as numpy
+views the kernels update in place (``kernels="cycle"``)."""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+import torch
+from torch import Tensor
+
+from hfrl_torch.envs.keepaway import cycle_numba as K
+from hfrl_torch.envs.keepaway.params import KeepawayConfig
+from hfrl_torch.envs.keepaway.skills import _reach_table, get_open_grid
+
+POLICY_CODES = {"hold": 0, "random": 1, "hand": 2}
+MIN_FIELDS_PER_THREAD = 64  # below this a second thread costs more than it saves
+
+_POOL: ThreadPoolExecutor | None = None
+
+
+def _split(kernel: Callable[..., object], batch: int, *args: object) -> list[object]:
+    """Run ``kernel(*args, lo, hi)`` over field ranges, one per thread (``numba.get_num_threads()``,
+    which ``threads=`` sets), and return the results; the kernels release the GIL."""
+    global _POOL
+    threads = max(1, min(numba.get_num_threads(), batch // MIN_FIELDS_PER_THREAD))
+    if threads == 1:
+        return [kernel(*args, 0, batch)]
+    if _POOL is None or _POOL._max_workers < threads:
+        _POOL = ThreadPoolExecutor(max_workers=threads)
+    edges = [batch * t // threads for t in range(threads + 1)]
+    futures = [_POOL.submit(kernel, *args, lo, hi) for lo, hi in itertools.pairwise(edges)]
+    return [f.result() for f in futures]
+
+
+_STATE_ORDER = (
+    "pos",
+    "vel",
+    "body",
+    "counter",
+    "episode_cycles",
+    "last_decision",
+    "prev_holder",
+    "pass_target",
+    "action_start",
+    "clock",
+    "see_phase",
+    "seen_pos",
+    "seen_vel",
+    "seen_body",
+)
+
+
+def task_arrays(config: KeepawayConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The kernels' float parameters, integer parameters, per-cycle look-ahead tables [7, H + 1]
+    (computed in float32 as the torch path does) and GetOpen grid [25, 2]."""
+    p = config.physics
+    accel = min(p.max_power * p.dash_power_rate, p.player_accel_max)
+    cruise = min(accel / (1.0 - p.player_decay), p.player_speed_max)
+    prm = np.zeros(K.NUM_PRM)
+    for index, value in (
+        (K.KD, p.kickable_distance),
+        (K.B_DECAY, p.ball_decay),
+        (K.B_RAND, p.ball_rand),
+        (K.B_ACC, p.ball_accel_max),
+        (K.B_SPEED, p.ball_speed_max),
+        (K.B_SIZE, p.ball_size),
+        (K.P_DECAY, p.player_decay),
+        (K.P_RAND, p.player_rand),
+        (K.P_SIZE, p.player_size),
+        (K.P_SPEED, p.player_speed_max),
+        (K.P_ACC, p.player_accel_max),
+        (K.MARGIN, p.kickable_margin),
+        (K.DASH_RATE, p.dash_power_rate),
+        (K.KICK_RATE, p.kick_power_rate),
+        (K.MIN_DASH, p.min_dash_power),
+        (K.MAX_POWER, p.max_power),
+        (K.KICK_RAND, p.kick_rand),
+        (K.INERTIA, p.inertia_moment),
+        (K.MAX_MOMENT, p.max_moment),
+        (K.LENGTH, config.length),
+        (K.WIDTH, config.width),
+        (K.DASH_ACC, accel),
+        (K.CRUISE, cruise),
+    ):
+        prm[index] = value
+    ip = np.zeros(K.NUM_IP, dtype=np.int64)
+    for index, value in (
+        (K.N, config.keepers),
+        (K.M, config.takers),
+        (K.HORIZON, config.intercept_horizon),
+        (K.PASSES, config.collision_passes),
+        (K.TURNOVER, config.turnover),
+        (K.PERIOD, config.decision_period_cycles),
+        (K.SERVER_PERCEPTION, config.perception == "server"),
+        (K.NOISY_OBS, config.noisy_observations),
+        (K.REFERENCE_HOLD, config.hold_ball == "reference"),
+        (K.SERVER_TIMING, config.decision_timing == "server"),
+        (K.NOISE, config.movement_noise),
+        (K.POLAR, p.polar_noise),
+    ):
+        ip[index] = int(value)
+    steps = torch.arange(config.intercept_horizon + 1, dtype=torch.float32)
+    travel = (1.0 - torch.pow(torch.full_like(steps, p.ball_decay), steps)) / (1.0 - p.ball_decay)
+    series = (1.0 - torch.pow(torch.full_like(steps, p.player_decay), steps)) / (1.0 - p.player_decay)
+    table = _reach_table(config.intercept_horizon, p, torch.device("cpu"), torch.float32)
+    tabs = torch.cat((travel[None], series[None], (steps * cruise)[None], table)).double().numpy()
+    grid = get_open_grid(config.length, config.width, torch.device("cpu"), torch.float32).double().numpy()
+    return prm, ip, np.ascontiguousarray(tabs), np.ascontiguousarray(grid)
+
+
+def seed_streams(seed: int, batch: int) -> np.ndarray:
+    """One splitmix64 state per field [B] (uint64), hashed from the seed and the field's index so
+    that the streams start far apart."""
+    mask = (1 << 64) - 1
+    out = np.empty(batch, dtype=np.uint64)
+    for b in range(batch):
+        z = (seed * 0x9E3779B97F4A7C15 + (b + 1) * 0xD1B54A32D192ED03) & mask
+        z = ((z ^ (z >> 30)) * 0xBF58476D1CE4E5B9) & mask
+        z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & mask
+        out[b] = z ^ (z >> 31)
+    return out
+
+
+@dataclass
+class Advance:
+    """What an SMDP advance did to each field: cycles simulated and end cause (0 none) [B]."""
+
+    cycles: Tensor
+    cause: Tensor
+
+
+class CompiledCycle:
+    """The whole-cycle kernels of one simulator: constants, random streams and numpy views."""
+
+    def __init__(self, config: KeepawayConfig, batch: int, seed: int) -> None:
+        self.config = config
+        self.prm, self.ip, self.tabs, self.grid = task_arrays(config)
+        self.rng = seed_streams(seed, batch)
+        self.batch = batch
+        self._views: tuple[object, tuple[np.ndarray, ...]] | None = None
+
+    def reseed(self, seed: int) -> None:
+        """Restart every field's random stream from ``seed``."""
+        self.rng[:] = seed_streams(seed, self.batch)
+
+    def arrays(self, state: object) -> tuple[np.ndarray, ...]:
+        """The state's tensors as numpy views (cached while the state object stays the same)."""
+        if self._views is not None and self._views[0] is state:
+            return self._views[1]
+        tensors = [getattr(state, name) for name in _STATE_ORDER]
+        if not all(t.is_contiguous() for t in tensors):
+            raise RuntimeError("kernels='cycle' needs contiguous state tensors")
+        views = tuple(t.numpy() for t in tensors)
+        self._views = (state, views)
+        return views
+
+    def forget(self) -> None:
+        """Drop the cached views (the state object is about to be replaced)."""
+        self._views = None
+
+    def cycle(self, state: object, actions: Tensor, active: Tensor, uniforms: np.ndarray) -> Tensor:
+        """One cycle in place on ``state`` with the torch path's uniforms [B, U]; the end causes [B]."""
+        cause = torch.zeros(self.batch, dtype=torch.long)
+        _split(
+            K.cycle,
+            self.batch,
+            *self.arrays(state),
+            actions.numpy(),
+            active.numpy(),
+            uniforms,
+            self.prm,
+            self.ip,
+            self.tabs,
+            self.grid,
+            cause.numpy(),
+        )
+        return cause
+
+    def decisions(self, state: object) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Holder, kickable, must-decide [B] and the holder's state variables [B, F] (float32)."""
+        a = self.arrays(state)
+        holder = torch.empty(self.batch, dtype=torch.long)
+        kickable = torch.empty(self.batch, dtype=torch.bool)
+        must = torch.empty(self.batch, dtype=torch.bool)
+        obs = torch.empty(self.batch, self.config.num_state_vars, dtype=torch.float32)
+        _split(
+            K.decisions,
+            self.batch,
+            a[0],
+            a[2],
+            a[9],
+            a[10],
+            a[11],
+            a[7],
+            a[6],
+            a[4],
+            a[8],
+            self.prm,
+            self.ip,
+            holder.numpy(),
+            kickable.numpy(),
+            must.numpy(),
+            obs.numpy(),
+        )
+        return holder, kickable, must, obs
+
+    def advance(
+        self,
+        state: object,
+        actions: Tensor,
+        first: Tensor,
+        running: Tensor,
+        sync: str,
+        restart: bool,
+        max_cycles: int,
+    ) -> Advance:
+        """Every ``running`` field to its holder's next decision (``sync="all"``: each on its own;
+        ``"any"``: in lock-step until one decides or ends), a first cycle with ``actions`` where
+        ``first``; in place."""
+        cycles = torch.zeros(self.batch, dtype=torch.long)
+        cause = torch.zeros(self.batch, dtype=torch.long)
+        common = (*self.arrays(state), self.rng, actions.numpy(), first.numpy(), running.numpy())
+        tail = (self.prm, self.ip, self.tabs, self.grid, cycles.numpy(), cause.numpy())
+        if sync == "all":
+            ok = sum(_split(K.advance_fields, self.batch, *common, restart, max_cycles, *tail)) == 0
+        else:
+            ok = K.advance_any(*common, max_cycles, *tail)
+        if not ok:
+            raise RuntimeError("keepaway: no decision within max_cycles_per_step cycles")
+        return Advance(cycles=cycles, cause=cause)
+
+    def play(
+        self, state: object, policy: str, episodes_per_field: int, max_cycles: int
+    ) -> tuple[Tensor, Tensor, Tensor, int]:
+        """Benchmark keepers ``policy`` on every field up to ``episodes_per_field`` episodes (or
+        ``max_cycles`` cycles): durations [B, E], causes [B, E], episodes played [B], field-cycles."""
+        if policy not in POLICY_CODES:
+            raise ValueError(f"policy={policy!r} is invalid; allowed: {', '.join(POLICY_CODES)}")
+        durations = torch.zeros(self.batch, episodes_per_field, dtype=torch.long)
+        causes = torch.zeros(self.batch, episodes_per_field, dtype=torch.long)
+        played = torch.zeros(self.batch, dtype=torch.long)
+        totals = _split(
+            K.play,
+            self.batch,
+            *self.arrays(state),
+            self.rng,
+            POLICY_CODES[policy],
+            max_cycles,
+            durations.numpy(),
+            causes.numpy(),
+            played.numpy(),
+            self.prm,
+            self.ip,
+            self.tabs,
+            self.grid,
+        )
+        return durations, causes, played, int(sum(totals))
+
+    def uniform_count(self) -> int:
+        """Uniforms per field and cycle (see ``cycle_numba.uniform_count``)."""
+        return int(K.uniform_count(self.ip))
