@@ -8,7 +8,6 @@ import math
 
 import pytest
 import torch
-from omegaconf import OmegaConf
 
 from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.envs.keepaway import KeepawayConfig, KeepawaySimulator, hand_coded_actions
@@ -31,6 +30,7 @@ from hfrl_torch.envs.keepaway.physics import (
 )
 from hfrl_torch.envs.keepaway.skills import hold_ball
 from hfrl_torch.envs.keepaway.state_vars import keeper_state_variables
+from hfrl_torch.experiment.factories import make_keepaway_config
 
 torch.set_num_threads(1)
 PHYSICS = physics_preset("rcss19")
@@ -260,7 +260,7 @@ def test_server_timing_restarts_the_reward_clock_while_a_pass_carries_on() -> No
     assert restarted > 0
 
 
-def test_options_give_one_line_errors() -> None:
+def test_options_give_one_line_errors(compose_train) -> None:
     for name, allowed in (
         ("perception", "exact, server"),
         ("hold_ball", "spec, reference"),
@@ -270,22 +270,16 @@ def test_options_give_one_line_errors() -> None:
             KeepawayConfig(**{name: "bad"})
     with pytest.raises(ValueError, match="set noisy_observations=False"):
         KeepawayConfig(perception="server", noisy_observations=True)
-    from hfrl_torch.experiment.evaluate import keepaway_config
-
-    base = OmegaConf.load("conf/domain/keepaway.yaml")
-    for key, value, message in (
-        ("perception", "full", "domain.perception='full' is invalid; allowed: exact, server"),
-        ("hold_ball", "mine", "domain.hold_ball='mine' is invalid; allowed: spec, reference"),
-        ("decision_timing", "late", "domain.decision_timing='late' is invalid; allowed: cycle, server"),
-        ("noisy_observations", True, "set domain.noisy_observations=false"),
+    for override, message in (
+        ("domain.perception=full", "domain.perception='full' is invalid; allowed: exact, server"),
+        ("domain.hold_ball=mine", "domain.hold_ball='mine' is invalid; allowed: spec, reference"),
+        ("domain.decision_timing=late", "domain.decision_timing='late' is invalid; allowed: cycle, server"),
+        ("domain.noisy_observations=true", "set domain.noisy_observations=false"),
     ):
-        cfg = OmegaConf.create({"domain": OmegaConf.to_container(base), "device": "cpu"})
-        cfg.domain[key] = value
         with pytest.raises(ConfigError, match=message):
-            keepaway_config(cfg)
-    cfg = OmegaConf.create({"domain": OmegaConf.to_container(base), "device": "cpu"})
-    del cfg.domain["perception"]  # a saved config from before the option: the simulator's default
-    assert keepaway_config(cfg).perception == "exact"
+            compose_train("domain=keepaway", override)
+    # a saved config from before the option: the simulator's default
+    assert make_keepaway_config(compose_train("domain=keepaway", "~domain.perception")).perception == "exact"
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
