@@ -206,15 +206,23 @@ def trial(
     kills: int,
     rng: random.Random,
 ) -> dict[str, Any]:
-    """Kill the run ``kills`` times at random moments, resume until it ends, compare with ``reference``."""
-    killed = resumed = restarted = attempts = 0
+    """Kill the run ``kills`` times at random moments, resume until it ends, compare with ``reference``.
+
+    A fresh run that ends before its first kill (the machine ran faster than for the reference) is started
+    again with a new moment drawn before the end it reached, so that every trial is killed at least once."""
+    killed = resumed = restarted = redrawn = 0
     while True:
-        attempts += 1
         had_checkpoint = (run_dir / "checkpoints" / "last.pt").exists()
         resumed += had_checkpoint
         pid = spawn(cfg, run_dir)
         kill_after = rng.uniform(*window) if killed < kills else None
-        was_killed, code, _, _ = wait(pid, kill_after)
+        was_killed, code, elapsed, _ = wait(pid, kill_after)
+        if not was_killed and killed == 0 and code == 0:
+            shutil.rmtree(run_dir)
+            window = (min(window[0], 0.5 * elapsed), elapsed)
+            redrawn += 1
+            resumed -= had_checkpoint
+            continue
         if not was_killed:
             break
         killed += 1
@@ -232,6 +240,7 @@ def trial(
         "exit": code,
         "kills": killed,
         "resumes": resumed,
+        "redrawn": redrawn,
         "restarts_before_first_checkpoint": restarted,
         "events_lost": sum((Counter(ref_events) - Counter(got_events)).values()),
         "events_duplicated": dropped + sum(n - 1 for n in ids.values() if n > 1),
@@ -291,6 +300,9 @@ def main() -> None:
             "trials": len(rows),
             "kills": sum(r["kills"] for r in rows),
             "resumes": sum(r["resumes"] for r in rows),
+            "redrawn_kill_moments": sum(r["redrawn"] for r in rows),
+            "trials_killed": sum(r["kills"] > 0 for r in rows),
+            "trials_resumed": sum(r["resumes"] > 0 for r in rows),
             "restarts_before_first_checkpoint": sum(r["restarts_before_first_checkpoint"] for r in rows),
             "failed_runs": sum(r["exit"] != 0 for r in rows),
             "events_lost": sum(r["events_lost"] for r in rows),
@@ -310,6 +322,8 @@ def main() -> None:
         k: sum(c[k] for c in totals)
         for k in (
             "trials",
+            "trials_killed",
+            "trials_resumed",
             "kills",
             "resumes",
             "events_lost",
