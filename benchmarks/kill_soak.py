@@ -79,7 +79,7 @@ CONFIGS = {
         "agent.table_bits=12",
         "agent.log_minutes=0.05",
         "agent.log_episodes=1",
-        "agent.hours=0.003",
+        "agent.hours=0.006",
         "agent.checkpoint_minutes=0.05",
     ],
 }
