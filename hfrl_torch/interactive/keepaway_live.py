@@ -154,13 +154,20 @@ class BrowserKeeperTrainer:
         return values, times
 
     def state_dict(self) -> dict[str, Any]:
-        """The counts (presses not yet delivered are dropped with the episodes in progress)."""
-        return {"given": self.given, "positive": self.positive}
+        """The counts, and the presses logged but not yet handed to the run (a resumed run gives them)."""
+        return {
+            "given": self.given,
+            "positive": self.positive,
+            "waiting": [ev.to_dict() for ev in self.waiting],
+            "now": self._now,
+        }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Continue the counts of a saved run."""
+        """Continue the counts and the waiting presses of a saved run (older checkpoints kept no presses)."""
         try:
             self.given, self.positive = int(state["given"]), int(state["positive"])
+            self.waiting = deque(FeedbackEvent(**ev) for ev in state.get("waiting", []))
+            self._now = float(state.get("now", 0.0))
         except (KeyError, TypeError, ValueError) as e:
             raise CheckpointError(f"bad browser-trainer state in the checkpoint ({e!r})") from None
 

@@ -71,10 +71,22 @@ def test_presses_are_placed_on_the_fields_simulated_clock_and_logged(tmp_path):
     assert [e.time for e in events] == pytest.approx([5.6, 5.4, 5.5])
     assert [(e.value, e.episode, e.step) for e in events] == [(1.0, -1, -1), (1.0, 3, 6), (-1.0, 3, 7)]
     assert {(e.source, e.session) for e in events} == {("human:browser", "run1")}
-    assert trainer.state_dict() == {"given": 3, "positive": 2}
+    assert trainer.state_dict() == {"given": 3, "positive": 2, "waiting": [], "now": 5.5}
+
+
+def test_a_logged_press_waiting_for_its_poll_is_in_the_checkpoint(tmp_path):
+    _, _, session = _fake_clock()
+    log = FeedbackLog(tmp_path / "feedback.jsonl", session="run1")
+    trainer = BrowserKeeperTrainer(session, fields=1, log=log)
+    _press(session, 100.7, 1.0)
+    _press(session, 100.8, -1.0)
+    now = torch.tensor([5.5], dtype=torch.float64)
+    assert trainer.poll(now)[0].tolist() == [1.0]  # the second press, logged, waits for the next poll...
     again = BrowserKeeperTrainer(session)
-    again.load_state_dict(trainer.state_dict())
-    assert again.given == 3
+    again.load_state_dict(trainer.state_dict())  # ...and a resumed run gives it (the log holds it already)
+    assert again.given == 2 and [(e.value, e.seq) for e in again.waiting] == [(-1.0, 1)]
+    assert again.poll(now)[0].tolist() == [-1.0]
+    log.close()
 
 
 def test_presses_left_in_the_queue_at_stop_are_logged_on_the_fields_clock(tmp_path):

@@ -11,6 +11,8 @@ counted (``credited`` / ``decisions``).
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 from tensordict import TensorDictBase
 
@@ -125,3 +127,30 @@ class KeeperTamer:
         """Share of the decisions (retired from the history) that received any credit."""
         retired = self.decisions - int(self.filled.sum())
         return self.credited / retired if retired > 0 else 0.0
+
+    # --------------------------------------------------------------- checkpoints
+
+    _HISTORY = ("tiles", "owner", "starts", "filled", "got_credit")
+
+    def state_dict(self) -> dict[str, Any]:
+        """H^'s weights, each field's decisions that can still receive credit, and the credit counts."""
+        return {
+            "weight": self.model.weight.clone(),
+            **{k: getattr(self, k).clone() for k in self._HISTORY},
+            "decisions": self.decisions,
+            "credited": self.credited,
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Continue the H^ and credit windows of :meth:`state_dict` (same fields, history and tiles)."""
+        history = {k: state[k] for k in self._HISTORY}
+        for k, v in history.items():
+            now = getattr(self, k)
+            if not isinstance(v, torch.Tensor) or v.shape != now.shape or v.dtype != now.dtype:
+                raise ValueError(
+                    f"KeeperTamer state {k!r} does not fit this one's {now.dtype} {tuple(now.shape)}"
+                )
+        self.model.weight.copy_(state["weight"])
+        for k, v in history.items():
+            setattr(self, k, v.clone())
+        self.decisions, self.credited = int(state["decisions"]), int(state["credited"])

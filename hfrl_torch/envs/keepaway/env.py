@@ -288,6 +288,33 @@ class KeepawayEnv(EnvBase):
                 return ended, cause, cycles
         raise RuntimeError("keepaway: no decision within max_cycles_per_step cycles")
 
+    # ------------------------------------------------------------------ checkpoints
+
+    def state_dict(self) -> dict[str, object]:
+        """The simulator's play in progress and this env's own bookkeeping (the outputs of the last step,
+        which fields' episodes are over): what :meth:`load_state_dict` continues exactly."""
+        return {
+            "sim": self.sim.state_dict(),
+            "outputs": {k: v.clone().cpu() for k, v in self._outputs.items()},
+            "done": self._done.clone().cpu(),
+        }
+
+    def load_state_dict(self, state: dict[str, object]) -> None:
+        """Continue the fields of :meth:`state_dict` (same number of fields and task)."""
+        outputs, done = state["outputs"], state["done"]
+        if not isinstance(outputs, dict) or set(outputs) != set(self._outputs):
+            held = sorted(outputs) if isinstance(outputs, dict) else type(outputs).__name__
+            raise ValueError(f"keepaway env outputs hold {held}; expected {sorted(self._outputs)}")
+        for k, now in self._outputs.items():
+            v = outputs[k]
+            if not isinstance(v, torch.Tensor) or v.shape != now.shape or v.dtype != now.dtype:
+                raise ValueError(f"keepaway env output {k!r} does not fit this env's {now.dtype} {now.shape}")
+        if not isinstance(done, torch.Tensor) or done.shape != self._done.shape:
+            raise ValueError(f"keepaway env 'done' does not fit this env's {tuple(self._done.shape)} fields")
+        self.sim.load_state_dict(state["sim"])
+        self._outputs = {k: v.to(self.device).clone() for k, v in outputs.items()}
+        self._done = done.to(device=self.device, dtype=torch.bool).clone()
+
     def _set_seed(self, seed: int | None) -> None:
         if seed is not None:
             self.sim.seed(seed)

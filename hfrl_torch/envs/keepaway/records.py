@@ -85,11 +85,19 @@ class KeepawayRecords:
         self.decisions[rows] = 0
 
     def state_dict(self) -> dict[str, torch.Tensor]:
-        """Tensors that restore the records (the episodes in progress are not kept)."""
-        return {"rows": self.table.clone(), "clock": self.clock.clone(), "episodes": self.episodes.clone()}
+        """Tensors that restore the records, the episodes in progress included."""
+        return {
+            "rows": self.table.clone(),
+            "clock": self.clock.clone(),
+            "episodes": self.episodes.clone(),
+            "finished_cycles": self.finished_cycles.clone(),
+            "holds": self.holds.clone(),
+            "decisions": self.decisions.clone(),
+        }
 
     def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
-        """Continue after the saved records, with fresh episodes starting at the saved clocks."""
+        """Continue after the saved records; records saved without their episodes in progress (before
+        ``finished_cycles``) continue with fresh episodes starting at the saved clocks."""
         if state["clock"].shape != self.clock.shape or state["episodes"].shape != self.episodes.shape:
             raise ValueError(
                 f"records of {state['clock'].numel()} fields / {state['episodes'].numel()} learners cannot "
@@ -97,10 +105,19 @@ class KeepawayRecords:
             )
         self._rows = [state["rows"].clone()]
         self.clock = state["clock"].clone()
-        self.finished_cycles = state["clock"].clone()
         self.episodes = state["episodes"].clone()
-        self.holds.zero_()
-        self.decisions.zero_()
+        if "finished_cycles" not in state:
+            self.finished_cycles = state["clock"].clone()
+            self.holds.zero_()
+            self.decisions.zero_()
+            return
+        if state["decisions"].shape != self.decisions.shape or state["holds"].shape != self.holds.shape:
+            raise ValueError(
+                f"records of episodes in progress do not fit {self.fields} fields x {self.keepers}"
+            )
+        self.finished_cycles = state["finished_cycles"].clone()
+        self.holds = state["holds"].clone()
+        self.decisions = state["decisions"].clone()
 
     def summary(self, rows: torch.Tensor) -> dict[str, float]:
         """Episode duration over learners (each learner's mean in seconds over its fields' episodes,

@@ -222,6 +222,33 @@ class KeepawaySimulator:
         if self.compiled is not None:
             self.compiled.reseed(seed)
 
+    def state_dict(self) -> dict[str, object]:
+        """Every field's play in progress (positions, world models, clocks...) and the generator: what
+        :meth:`load_state_dict` continues exactly."""
+        return {
+            "state": {k: v.clone().cpu() for k, v in self.state.tensors().items()},
+            "generator": self.generator.get_state(),
+        }
+
+    def load_state_dict(self, state: dict[str, object]) -> None:
+        """Continue the play of :meth:`state_dict` (same fields, players and perception)."""
+        saved = state["state"]
+        current = self.state.tensors()
+        if not isinstance(saved, dict) or set(saved) != set(current):
+            held = sorted(saved) if isinstance(saved, dict) else type(saved).__name__
+            raise ValueError(f"keepaway simulator state holds {held}; expected {sorted(current)}")
+        loaded = {}
+        for k, now in current.items():
+            v = saved[k]
+            if not isinstance(v, Tensor) or v.shape != now.shape or v.dtype != now.dtype:
+                raise ValueError(
+                    f"keepaway simulator state {k!r}: {getattr(v, 'dtype', type(v).__name__)} "
+                    f"{tuple(getattr(v, 'shape', ()))}; this simulator holds {now.dtype} {tuple(now.shape)}"
+                )
+            loaded[k] = v.to(self.device).clone()
+        self.generator.set_state(state["generator"])
+        self.state = dataclasses.replace(self.state, **loaded)
+
     # ------------------------------------------------------------------ episode control
 
     def fresh_state(self) -> KeepawayState:

@@ -26,13 +26,19 @@ each step of the loop, per field:
 A learner's simulated clock is the experience of all its fields summed: the ``hours`` budget and the curves
 use it. Curves of the episode duration go to TensorBoard and ``metrics.jsonl`` against simulated time per
 learner (step = simulated seconds) and, in ``tensorboard/by_episodes``, against episodes per learner.
-Checkpoints hold the weights, H^, the fusion and every finished episode; a resumed run abandons the
-episodes that were in progress (their learning so far is kept) and starts new ones.
+Checkpoints hold everything in flight, so a run killed and resumed continues as if never stopped: the
+simulator's fields (positions, world models, its generator), the env's bookkeeping, the keepers' pending SMDP
+transitions and traces, H^ and its credit windows, the trainer's and the fusion's draws, the feedback
+channel, the records of the episodes in progress, and the last feedback event learned from (the events
+after it are given again and not logged twice). A checkpoint written before this (no ``play``) still loads,
+with a warning: its episodes in progress are abandoned and the env is reseeded (weights, H^, fusion and
+finished episodes are kept), so that run does not continue as the uninterrupted one would.
 """
 
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -43,6 +49,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import TransformedEnv
 
 from hfrl_torch import keys
+from hfrl_torch.common.checkpoint import CheckpointWarning
 from hfrl_torch.common.errors import CheckpointError
 from hfrl_torch.common.logger import Logger
 from hfrl_torch.envs.keepaway import KeepawayEnv
@@ -113,13 +120,19 @@ class SarsaKeepers(Learner):
             self.episode_given = torch.zeros(fields, dtype=torch.int64)
             self.episode_watched = torch.zeros(fields, dtype=torch.int64)
             self.effort = torch.zeros(0, len(EFFORT_COLUMNS), dtype=torch.float64)
+        self.td: TensorDictBase | None = None
+        self._saved_at: int | None = None
+        play = None
         if checkpoint is not None:
-            self._load(checkpoint["state"])
+            play = self._load(checkpoint["state"])
         env = KeepawayEnv(
             fields, config, device=device, seed=int(cfg.seed) + 1_000_003 * self.resumes, sync="any"
         )
-        self.sim = env.sim
-        self.env = env if not self.taught else TransformedEnv(env, self._reward_fusion())
+        self.sim, self.sim_env = env.sim, env
+        self.reward_fusion = self._reward_fusion() if self.taught else None
+        self.env = env if not self.taught else TransformedEnv(env, self.reward_fusion)
+        if play is not None:
+            self._load_play(play)
         self.watcher: KeepawayWatcher | None = None
         if self.teaching is not None:
             weight = lambda: float(self.fusion.weight()[0])  # noqa: E731
@@ -138,7 +151,6 @@ class SarsaKeepers(Learner):
         self.window = max(1, round(float(a.log_minutes) * CYCLES_PER_MINUTE))
         self.every = max(1, round(float(a.checkpoint_minutes) * CYCLES_PER_MINUTE))
         self.unit = "sim s" if self.budget_cycles > 0 else "episode"  # type: ignore[misc]
-        self.td: TensorDictBase | None = None
 
     def _reward_fusion(self) -> FeedbackFusion:
         """The env's reward-level fusion: each keeper's reward with H^ of its own previous decision."""
@@ -199,15 +211,17 @@ class SarsaKeepers(Learner):
                 )
         if self.teaching is not None:
             wait_for_teacher(self.cfg, self.teaching)
-        self.td = self.env.reset()
-        self.reward = torch.zeros(
-            self.fields, device=self.env.device
-        )  # of the step that led to each decision
-        self.action = torch.zeros(self.fields, dtype=torch.int64, device=self.env.device)
-        self.records.advance(self.td[keys.EPISODE_CYCLES])
-        if self.taught:
-            self.trainer.new_episodes(torch.ones(self.fields, dtype=torch.bool))
-        self._saved_at = int(self.records.learner_clock.min())
+        if self.td is None:  # a new run, or one resumed from a checkpoint without its play in progress
+            self.td = self.env.reset()
+            self.reward = torch.zeros(
+                self.fields, device=self.env.device
+            )  # of the step that led to each decision
+            self.action = torch.zeros(self.fields, dtype=torch.int64, device=self.env.device)
+            self.records.advance(self.td[keys.EPISODE_CYCLES])
+            if self.taught:
+                self.trainer.new_episodes(torch.ones(self.fields, dtype=torch.bool))
+        if self._saved_at is None:
+            self._saved_at = int(self.records.learner_clock.min())
         self._start_wall, self._start_clock = time.perf_counter(), int(self.records.clock.sum())
 
     @property
@@ -450,6 +464,7 @@ class SarsaKeepers(Learner):
             "resumes": self.resumes,
             "time_windows": self.time_windows,
             "episode_windows": self.episode_windows,
+            "play": self._play_state(),
         }
         human = None
         if self.taught:
@@ -484,10 +499,66 @@ class SarsaKeepers(Learner):
         }
         return {"state": state, "policy": policy, "domain_config": asdict(self.config)}
 
-    def _load(self, state: dict[str, Any]) -> None:
+    def _play_state(self) -> dict[str, Any]:
+        """Everything in flight: the env's fields, the loop's step, and with a trainer H^'s credit windows,
+        the channel's waiting events, the episodes' effort and the last event learned from."""
+        play: dict[str, Any] = {
+            "env": self.sim_env.state_dict(),
+            "td": self.td.cpu().to_dict(),
+            "reward": self.reward.clone().cpu(),
+            "action": self.action.clone().cpu(),
+            "saved_at": self._saved_at,
+        }
+        if self.taught:
+            play.update(
+                reward_fusion=self.reward_fusion.get_extra_state(),
+                tamer=self.tamer.state_dict(),
+                channel=self.channel.state_dict(),
+                episode_given=self.episode_given.clone(),
+                episode_watched=self.episode_watched.clone(),
+                log_seq=self.log.last_seq,  # the last event of each session the learner has been given
+            )
+        return play
+
+    def _load_play(self, play: dict[str, Any]) -> None:
+        """Continue the play of :meth:`_play_state` exactly where the checkpoint left it."""
         try:
+            self.sim_env.load_state_dict(play["env"])
+            device = self.env.device
+            self.td = TensorDict(play["td"], batch_size=[self.fields]).to(device)
+            self.reward = play["reward"].to(device).clone()
+            self.action = play["action"].to(device=device, dtype=torch.int64).clone()
+            self._saved_at = int(play["saved_at"])
+            if self.taught:
+                self.reward_fusion.set_extra_state(play["reward_fusion"])
+                self.tamer.load_state_dict(play["tamer"])
+                self.channel.load_state_dict(play["channel"])
+                self.episode_given.copy_(play["episode_given"])
+                self.episode_watched.copy_(play["episode_watched"])
+                # exactly once: a simulated trainer or a replay gives the events after the checkpoint again
+                # (matched in the log, not written twice); a person's presses logged after it are learned now
+                unseen = self.log.resume(play["log_seq"], regenerated=not self.person)
+                if unseen:
+                    self.channel.put_events([unseen] + [[] for _ in range(self.fields - 1)])
+        except (KeyError, TypeError, RuntimeError, ValueError, AttributeError) as e:
+            raise CheckpointError(
+                f"checkpoint of {self.run_dir} does not continue this keepaway run's play ({e!r})"
+            ) from None
+
+    def _load(self, state: dict[str, Any]) -> dict[str, Any] | None:
+        """Restore what every checkpoint holds; returns the play in progress (None: an older checkpoint,
+        whose episodes in progress are abandoned)."""
+        try:
+            play = state.get("play")
             self.agent_sarsa.load_state_dict(state["agent"])
-            self.agent_sarsa.forget_episodes()
+            if play is None:
+                warnings.warn(
+                    f"checkpoint of {self.run_dir} predates saved episodes in progress: they are abandoned "
+                    "and the fields restart on a new seed, so this run will not match an uninterrupted one",
+                    CheckpointWarning,
+                    stacklevel=2,
+                )
+                self.agent_sarsa.forget_episodes()
             self.records.load_state_dict(state["records"])
             self.resumes = int(state["resumes"]) + 1
             self.time_windows, self.episode_windows = (
@@ -507,6 +578,7 @@ class SarsaKeepers(Learner):
             raise CheckpointError(
                 f"checkpoint of {self.run_dir} is not this keepaway run's ({e!r})"
             ) from None
+        return play
 
     # ------------------------------------------------------------------- results
 
