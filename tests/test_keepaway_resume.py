@@ -55,13 +55,16 @@ def _assert_same_run(whole, part, whole_dir, part_dir) -> None:
         assert torch.equal(whole.fusion.weight(), part.fusion.weight())
 
 
-def test_a_stopped_and_resumed_run_equals_the_uninterrupted_one(tmp_path, run_learner, one_thread):
-    whole, _ = run_learner(tmp_path / "whole", *SMALL)
-    _, stopped = run_learner(tmp_path / "part", *SMALL, stop_after=3)
+@pytest.mark.parametrize("kernels", ["auto", "cycle"])
+def test_a_stopped_and_resumed_run_equals_the_uninterrupted_one(tmp_path, run_learner, one_thread, kernels):
+    """With either CPU path: ``cycle``'s per-field random streams are in the checkpoint too."""
+    small = [*SMALL, f"domain.kernels={kernels}"]
+    whole, _ = run_learner(tmp_path / "whole", *small)
+    _, stopped = run_learner(tmp_path / "part", *small, stop_after=3)
     ckpt = load_checkpoint(tmp_path / "part")
     assert stopped is None and len(ckpt["history"]) == 3
     assert int(ckpt["state"]["play"]["env"]["sim"]["state"]["episode_cycles"].max()) > 0  # mid-episode
-    part, final = run_learner(tmp_path / "part", *SMALL, checkpoint=ckpt)
+    part, final = run_learner(tmp_path / "part", *small, checkpoint=ckpt)
     assert final is not None and load_checkpoint(tmp_path / "part")["state"]["resumes"] == 1
     _assert_same_run(whole, part, tmp_path / "whole", tmp_path / "part")
 

@@ -225,10 +225,13 @@ class KeepawaySimulator:
     def state_dict(self) -> dict[str, object]:
         """Every field's play in progress (positions, world models, clocks...) and the generator: what
         :meth:`load_state_dict` continues exactly."""
-        return {
+        saved: dict[str, object] = {
             "state": {k: v.clone().cpu() for k, v in self.state.tensors().items()},
             "generator": self.generator.get_state(),
         }
+        if self.compiled is not None:  # kernels="cycle": each field's own random stream
+            saved["streams"] = torch.from_numpy(self.compiled.rng.copy())
+        return saved
 
     def load_state_dict(self, state: dict[str, object]) -> None:
         """Continue the play of :meth:`state_dict` (same fields, players and perception)."""
@@ -247,6 +250,14 @@ class KeepawaySimulator:
                 )
             loaded[k] = v.to(self.device).clone()
         self.generator.set_state(state["generator"])
+        if self.compiled is not None and "streams" in state:
+            streams = state["streams"]
+            if not isinstance(streams, Tensor) or tuple(streams.shape) != self.compiled.rng.shape:
+                raise ValueError(
+                    f"keepaway simulator streams: {tuple(getattr(streams, 'shape', ()))}; "
+                    f"this simulator holds {self.compiled.rng.shape}"
+                )
+            self.compiled.rng[:] = streams.numpy()
         self.state = dataclasses.replace(self.state, **loaded)
 
     # ------------------------------------------------------------------ episode control
