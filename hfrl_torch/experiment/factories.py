@@ -155,6 +155,20 @@ def make_tamer(cfg: DictConfig, learners: int, num_features: int) -> TamerAgent:
     return TamerAgent(num_features, learners, h.alpha, make_credit(cfg), h.window, h.renormalise)
 
 
+def keeper_tamer_on(cfg: DictConfig, model: TileCoding, fields: int) -> KeeperTamer:
+    """Keepaway TAMER over ``model`` for ``fields`` fields, with ``human``'s step size, credit and window."""
+    h = cfg.human
+    return KeeperTamer(
+        model,
+        fields,
+        alpha=h.alpha,
+        credit=make_credit(cfg),
+        window=h.window,
+        history=h.history,
+        renormalise=h.renormalise,
+    )
+
+
 def make_keeper_tamer(
     cfg: DictConfig, agent: SarsaLambda, fields: int, keepers: int
 ) -> tuple[KeeperTamer, torch.Tensor]:
@@ -169,16 +183,7 @@ def make_keeper_tamer(
         size=coder.size,
         device=coder.weight.device,
     )
-    h = cfg.human
-    tamer = KeeperTamer(
-        model,
-        fields,
-        alpha=h.alpha,
-        credit=make_credit(cfg),
-        window=h.window,
-        history=h.history,
-        renormalise=h.renormalise,
-    )
+    tamer = keeper_tamer_on(cfg, model, fields)
     rows = torch.arange(fields * keepers)
     owners = rows if per_keeper else torch.div(rows, keepers, rounding_mode="floor")
     return tamer, owners
@@ -457,17 +462,7 @@ def make_deep_tamer(
 
 def make_shared_tile_tamer(cfg: DictConfig, config: KeepawayConfig, fields: int) -> SharedTileTamer:
     """The tile-coded keepaway H^ (``human=tile_coded``) of one learner, shared by its ``fields``."""
-    h = cfg.human
     model = TileCoding(
         keepaway_tile_widths(config.keepers, config.takers), num_actions=config.num_actions, learners=1
     )
-    tamer = KeeperTamer(
-        model,
-        fields,
-        alpha=h.alpha,
-        credit=make_credit(cfg),
-        window=h.window,
-        history=h.history,
-        renormalise=h.renormalise,
-    )
-    return SharedTileTamer(tamer)
+    return SharedTileTamer(keeper_tamer_on(cfg, model, fields))

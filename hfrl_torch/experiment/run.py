@@ -88,6 +88,21 @@ class Point:
         }
 
 
+@dataclass
+class WallClockSaves:
+    """A checkpoint cadence in wall seconds, for loops whose budget is not simulated time."""
+
+    last: float = field(default_factory=time.monotonic)
+
+    def due(self, every_s: float) -> bool:
+        """Whether ``every_s`` wall seconds have passed since the last checkpoint (which this then is)."""
+        now = time.monotonic()
+        if now - self.last >= every_s:
+            self.last = now
+            return True
+        return False
+
+
 class Learner(ABC):
     """A learner ``train.py`` runs (one per ``agent``): what it learns, how far it has come, what it saves.
 

@@ -27,7 +27,6 @@ resumed run refills it for ``agent.learn_after`` frames, and the games in progre
 from __future__ import annotations
 
 import math
-import time
 from abc import abstractmethod
 from pathlib import Path
 from typing import Any, ClassVar
@@ -47,7 +46,7 @@ from hfrl_torch.common.logger import Logger
 from hfrl_torch.common.stats import summarize
 from hfrl_torch.experiment.factories import make_fusion
 from hfrl_torch.experiment.learners.tetris_games import TRAINER_LABELS
-from hfrl_torch.experiment.run import Learner, Point
+from hfrl_torch.experiment.run import Learner, Point, WallClockSaves
 from hfrl_torch.feedback.log import FeedbackLog
 from hfrl_torch.fusion.fusion import Fusion
 from hfrl_torch.fusion.transform import FeedbackFusion, FusionModule
@@ -113,7 +112,7 @@ class DeepQLearner(Learner):
             auto_register_policy_transforms=False,
         )
         self.batches = iter(self.collector)
-        self._saved_at = time.monotonic()
+        self.saves = WallClockSaves()
         self.logger: Logger | None = None
 
     # ------------------------------------------------------------------ domain
@@ -274,11 +273,7 @@ class DeepQLearner(Learner):
         return Point(record, self.frames)
 
     def save_due(self) -> bool:
-        now = time.monotonic()
-        if now - self._saved_at >= SAVE_EVERY_S:
-            self._saved_at = now
-            return True
-        return False
+        return self.saves.due(SAVE_EVERY_S)
 
     # ------------------------------------------------------------- checkpoints
 

@@ -14,7 +14,6 @@ trainer's events on that placement go into the channel. One simulated trainer wa
 
 from __future__ import annotations
 
-import time
 from abc import abstractmethod
 from pathlib import Path
 from typing import Any, ClassVar
@@ -39,7 +38,7 @@ from hfrl_torch.experiment.factories import (
     make_tamer,
     make_trainer,
 )
-from hfrl_torch.experiment.run import Learner, Point
+from hfrl_torch.experiment.run import Learner, Point, WallClockSaves
 from hfrl_torch.feedback.channel import FeedbackChannel
 from hfrl_torch.feedback.log import FeedbackLog
 from hfrl_torch.fusion.transform import FusionModule
@@ -90,7 +89,7 @@ class TetrisGames(Learner):
             self.td = self.env.reset()
         else:
             self.td = self._load(checkpoint["state"])
-        self._saved_at = time.monotonic()
+        self.saves = WallClockSaves()
         self.logger: Logger | None = None
 
     # ------------------------------------------------------------------ subclass
@@ -244,11 +243,7 @@ class TetrisGames(Learner):
         }
 
     def save_due(self) -> bool:
-        now = time.monotonic()
-        if now - self._saved_at >= SAVE_EVERY_S:
-            self._saved_at = now
-            return True
-        return False
+        return self.saves.due(SAVE_EVERY_S)
 
     # ------------------------------------------------------------ checkpoints
 
