@@ -3,7 +3,8 @@ person's feedback too: ``train.py domain=keepaway [fusion=<scheme>]`` (thesis Fi
 
 ``agent.learners`` independent *learners* (teams of keepers: the seeds of the experiment) each play on
 ``agent.fields_per_learner`` fields of one batched ``KeepawayEnv`` (``sync="any"``: every field runs on
-while others decide, so no field idles). Field f belongs to learner f // fields_per_learner; keeper k of it
+while others decide, so no field idles; with ``domain.kernels=cycle``, ``sync="all"``: each field runs on its
+own to its next decision in one compiled call, so every step decides on every field at once). Field f belongs to learner f // fields_per_learner; keeper k of it
 reads and updates the weight table (f // fields_per_learner) * keepers + k, and learns from its own
 decisions only, each field giving each keeper its own SMDP transitions (state slot f * keepers + k):
 RLstartEpisode at its first decision, RLstep with reward = cycles since its own last decision, RLendEpisode
@@ -125,8 +126,12 @@ class SarsaKeepers(Learner):
         play = None
         if checkpoint is not None:
             play = self._load(checkpoint["state"])
+        # whole cycles compiled: every field runs on its own to its next decision, so each step decides
+        # on every field at once; elsewhere (and for a person watching every cycle) the fields run in
+        # lock-step until any must decide, so none idles
+        sync = "all" if config.kernels == "cycle" and not self.person else "any"
         env = KeepawayEnv(
-            fields, config, device=device, seed=int(cfg.seed) + 1_000_003 * self.resumes, sync="any"
+            fields, config, device=device, seed=int(cfg.seed) + 1_000_003 * self.resumes, sync=sync
         )
         self.sim, self.sim_env = env.sim, env
         self.reward_fusion = self._reward_fusion() if self.taught else None
@@ -278,7 +283,7 @@ class SarsaKeepers(Learner):
         self.records.advance(after[keys.EPISODE_CYCLES])
         if self.taught:
             self._deliver(after)
-            self.episode_watched += self.present.to(torch.int64)
+            self.episode_watched += self.present.to(torch.int64) * after[keys.STEP_CYCLES].view(-1).cpu()
         if bool(ended.any()):
             done_rows = ended.nonzero().squeeze(-1)
             slots = (done_rows.unsqueeze(1) * n + torch.arange(n, device=done_rows.device)).reshape(-1)
