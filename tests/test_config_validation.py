@@ -254,7 +254,18 @@ def test_numba_kernels_need_the_cpu():
     assert str(info.value) == (
         "domain.kernels='numba' runs on the CPU only, not device=cuda; use domain.kernels=auto or torch"
     )
-    assert check_kernels(_cfg("train", "domain=keepaway", "agent=sarsa", "device=cuda")) == "auto"
+    assert check_kernels(_cfg("train", "domain=keepaway", "agent=sarsa", "device=cuda")) == "torch"
+
+
+def test_keepaway_kernels_follow_the_device_and_the_trainer():
+    """Whole cycles compiled on the CPU, per-cycle kernels for the browser's live view, torch on a GPU;
+    whole cycles cannot show the browser trainer every cycle."""
+    assert check_kernels(_cfg("train", "domain=keepaway")) == "cycle"
+    assert check_kernels(_cfg("train", "domain=keepaway", "trainer=interactive")) == "numba"
+    assert check_kernels(_cfg("evaluate", "domain=keepaway")) == "cycle"
+    cfg = _cfg("train", "domain=keepaway", "trainer=interactive", "domain.kernels=cycle")
+    with pytest.raises(ConfigError, match="domain.kernels='cycle' runs many cycles per call"):
+        check_kernels(cfg)
 
 
 def test_the_adaptive_priors_strength_follows_the_domain(compose_train):

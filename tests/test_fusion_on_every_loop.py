@@ -133,7 +133,7 @@ def test_keepaway_reward_shaping_goes_through_the_component(tmp_path, run_learne
         return original(self, reward, human, w)
 
     monkeypatch.setattr(Fusion, "reward", spy)
-    run_learner(tmp_path, *KEEPAWAY, "fusion=reward_shaping", "agent.hours=0.002")
+    run_learner(tmp_path, *KEEPAWAY, "fusion=reward_shaping", "agent.hours=0.005")
     assert len(calls) > 20  # every env step's rewards (and the episodes' last ones)
 
 

@@ -7,6 +7,9 @@ package). ``python train.py --cfg job`` shows them as written; ``--resolve`` sho
   when the fusion scheme needs a trainer, none otherwise.
 - ``${decision_period:<trainer>}``: keepaway holders decide every cycle (100 ms, the reference) without
   a trainer and every 5 cycles (500 ms, the thesis's human-feedback setting) when one watches.
+- ``${keepaway_kernels:<device>,<trainer>}``: how keepaway's cycles run: ``cycle`` (whole cycles and the
+  SMDP advance compiled) on the CPU, ``numba`` (per-skill kernels, one cycle per call) when a person watches
+  in the browser (the live view is drawn after every cycle), ``torch`` on a GPU.
 - ``${adaptive_prior_count:<domain>}``: the strength, in episodes, of the adaptive weight's prior for H^:
   4 for Tetris, 20 for keepaway, whose episodes are a few seconds each and so carry less evidence
   (measured: docs/results.md, the adaptive weight).
@@ -22,7 +25,7 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-RESOLVERS = ("implied_trainer", "decision_period", "adaptive_prior_count", "run_dir")
+RESOLVERS = ("implied_trainer", "decision_period", "keepaway_kernels", "adaptive_prior_count", "run_dir")
 PRIOR_EPISODES = {"tetris": 4.0, "keepaway": 20.0}
 
 
@@ -34,6 +37,13 @@ def implied_trainer(fusion: str) -> str:
 def decision_period(trainer: str) -> int:
     """Cycles between a keepaway holder's decisions: 1 without a trainer, 5 when one watches."""
     return 1 if trainer in (None, "none") else 5
+
+
+def keepaway_kernels(device: str, trainer: str | None) -> str:
+    """``cycle`` on the CPU, ``numba`` for the browser trainer's cycle-by-cycle view, ``torch`` elsewhere."""
+    if str(device) != "cpu":
+        return "torch"
+    return "numba" if trainer == "interactive" else "cycle"
 
 
 def adaptive_prior_count(domain: str) -> float:
@@ -58,6 +68,7 @@ def register() -> None:
     for name, fn in (
         ("implied_trainer", implied_trainer),
         ("decision_period", decision_period),
+        ("keepaway_kernels", keepaway_kernels),
         ("adaptive_prior_count", adaptive_prior_count),
     ):
         if not OmegaConf.has_resolver(name):
