@@ -264,7 +264,7 @@ def test_keepaway_kernels_follow_the_device_and_the_trainer():
     assert check_kernels(_cfg("train", "domain=keepaway", "trainer=interactive")) == "numba"
     assert check_kernels(_cfg("evaluate", "domain=keepaway")) == "cycle"
     cfg = _cfg("train", "domain=keepaway", "trainer=interactive", "domain.kernels=cycle")
-    with pytest.raises(ConfigError, match="domain.kernels='cycle' runs many cycles per call"):
+    with pytest.raises(ConfigError, match=r"domain\.kernels='cycle' runs many cycles per call"):
         check_kernels(cfg)
 
 

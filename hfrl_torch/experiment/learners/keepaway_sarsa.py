@@ -2,11 +2,12 @@
 person's feedback too: ``train.py domain=keepaway [fusion=<scheme>]`` (thesis Figure 5.4 and Chapter 5).
 
 ``agent.learners`` independent *learners* (teams of keepers: the seeds of the experiment) each play on
-``agent.fields_per_learner`` fields of one batched ``KeepawayEnv`` (``sync="any"``: every field runs on
-while others decide, so no field idles; with ``domain.kernels=cycle``, ``sync="all"``: each field runs on its
-own to its next decision in one compiled call, so every step decides on every field at once). Field f belongs to learner f // fields_per_learner; keeper k of it
-reads and updates the weight table (f // fields_per_learner) * keepers + k, and learns from its own
-decisions only, each field giving each keeper its own SMDP transitions (state slot f * keepers + k):
+``agent.fields_per_learner`` fields of one batched ``KeepawayEnv``. On the whole-cycle kernels
+(``domain.kernels=cycle``, the CPU default) it runs ``sync="all"``: each field on its own to its next
+decision in one compiled call, so every step decides on every field at once; otherwise ``sync="any"``: the
+fields in lock-step until any must decide, so none idles. Field f belongs to learner f // fields_per_learner;
+keeper k of it reads and updates the weight table (f // fields_per_learner) * keepers + k, and learns from
+its own decisions only, each field giving each keeper its own SMDP transitions (state slot f * keepers + k):
 RLstartEpisode at its first decision, RLstep with reward = cycles since its own last decision, RLendEpisode
 for every keeper with a pending action when the episode ends (``episode_end_rewards``).
 
