@@ -235,6 +235,50 @@ class CompiledCycle:
             raise RuntimeError("keepaway: no decision within max_cycles_per_step cycles")
         return Advance(cycles=cycles, cause=cause)
 
+    def reset(self, state: object, mask: np.ndarray) -> None:
+        """A new episode on the ``mask`` [B] fields (bool numpy), each drawn from its own stream, in
+        place; the other fields are untouched."""
+        a = self.arrays(state)
+        _split(K.reset_fields, self.batch, *a[:9], *a[11:], self.rng, mask, self.prm, self.ip)
+
+    def env_outputs(
+        self,
+        state: object,
+        fields: np.ndarray,
+        cause: np.ndarray,
+        cycles: np.ndarray,
+        stepping: bool,
+        outputs: tuple[np.ndarray, ...],
+        done: np.ndarray,
+        reward: np.ndarray,
+    ) -> None:
+        """KeepawayEnv's outputs after a step or a reset of ``fields``, in place (see
+        ``cycle_numba.env_outputs``; ``outputs`` in the env's ``_OUTPUT_KEYS`` order)."""
+        a = self.arrays(state)
+        _split(
+            K.env_outputs,
+            self.batch,
+            a[0],
+            a[2],
+            a[4],
+            a[5],
+            a[6],
+            a[7],
+            a[8],
+            a[9],
+            a[10],
+            a[11],
+            fields,
+            cause,
+            cycles,
+            stepping,
+            self.prm,
+            self.ip,
+            *outputs,
+            done,
+            reward,
+        )
+
     def play(
         self, state: object, policy: str, episodes_per_field: int, max_cycles: int
     ) -> tuple[Tensor, Tensor, Tensor, int]:
