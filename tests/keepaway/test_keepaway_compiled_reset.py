@@ -6,7 +6,7 @@ from __future__ import annotations
 import torch
 
 from hfrl_torch import keys
-from hfrl_torch.envs.keepaway import KeepawayConfig, KeepawayEnv, KeepawaySimulator
+from hfrl_torch.envs.keepaway import KeepawayConfig, KeepawayEnv, KeepawaySimulator, play_benchmark_policy
 from hfrl_torch.envs.keepaway.perception import observe
 
 SERVER = {"perception": "server", "hold_ball": "reference", "decision_timing": "server"}
@@ -99,3 +99,17 @@ def test_compiled_env_outputs_are_the_decisions_of_the_state() -> None:
             out = env.reset(again.clone().set(keys.RESET, again[keys.DONE].clone()))
         td = out
     assert ended >= 2
+
+
+def test_cycle_outcomes_keep_their_episode_lengths_across_the_reset() -> None:
+    """A cycle's outcome holds the ended episodes' lengths even though the compiled reset right after
+    restarts those fields in place (``step(auto_reset=True)``; the benchmark runner resets after reading)."""
+    sim = KeepawaySimulator(8, KeepawayConfig(kernels="cycle", **SERVER), seed=5)
+    lengths = []
+    for _ in range(300):
+        out = sim.step(None, auto_reset=True)
+        lengths += out.episode_cycles[out.ended].tolist()
+        assert bool((sim.state.episode_cycles[out.ended] == 0).all())
+    assert len(lengths) >= 3 and min(lengths) > 0
+    result = play_benchmark_policy("hold", 6, batch=3, progress=False, kernels="cycle", **SERVER)
+    assert result["median_s"] > 0.5

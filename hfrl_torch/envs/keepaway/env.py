@@ -166,10 +166,8 @@ class KeepawayEnv(EnvBase):
         return ended, cause, cycles
 
     def _decisions(self) -> tuple[Decision, torch.Tensor]:
-        """The simulator's decision and the holder's state variables (one compiled call on the
-        whole-cycle path)."""
-        if self.sim.compiled is not None:
-            return self.sim.compiled_decisions()
+        """The simulator's decision and the holder's state variables (the torch path's; the
+        whole-cycle path writes them in ``cycle_numba.env_outputs``)."""
         dec = self.sim.decision()
         return dec, self.sim.observe(dec.holder)[0]
 

@@ -698,7 +698,7 @@ class KeepawaySimulator:
         outcome = CycleOutcome(
             ended=ended,
             end_cause=cause,
-            episode_cycles=state.episode_cycles,
+            episode_cycles=state.episode_cycles.clone(),  # the compiled reset below works in place
             episode_end_rewards=self.episode_end_rewards(),
         )
         if auto_reset and bool(ended.any()):
