@@ -18,7 +18,6 @@ The terminal ``reward`` is the entry of the keeper that decided last.
 
 from __future__ import annotations
 
-import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Binary, Categorical, Composite, Unbounded
@@ -215,33 +214,25 @@ class KeepawayEnv(EnvBase):
 
     def _compiled_reset(self, mask: torch.Tensor) -> TensorDict:
         """:meth:`_reset` on the whole-cycle path: restart, (``"all"``) run to the first decisions and
-        write the outputs, in three compiled calls and no torch work per field."""
-        sim = self.sim
-        mask = mask.to(torch.bool).contiguous()
-        sim.reset(mask)
-        if self.sync == "all":
-            sim.advance(None, mask, first=False, restart=True, max_cycles=self.max_cycles_per_step)
+        write the outputs in compiled calls, with no torch work per field."""
         outputs, done = self._arrays
-        unused = np.zeros(self.batch_size[0], dtype=np.int64)  # no causes, cycles, rewards in a reset
-        sim.compiled.env_outputs(
-            sim.state, mask.numpy(), unused, unused, False, outputs, done, unused.astype(np.float32)
-        )
+        mask = mask.to(torch.bool).contiguous().numpy()
+        sim = self.sim
+        sim.compiled.env_reset(sim.state, mask, self.sync == "all", self.max_cycles_per_step, outputs, done)
         return self._compiled_result(None)
 
     def _compiled_step(self, actions: torch.Tensor) -> TensorDict:
         """:meth:`_step` on the whole-cycle path: every alive field advanced, then its outputs, reward
         and done flag written, in two compiled calls."""
-        sim = self.sim
-        alive = ~self._done
-        advanced = sim.advance(actions, alive, sync=self.sync, max_cycles=self.max_cycles_per_step)
-        reward = torch.empty(self.batch_size[0], dtype=torch.float32)
         outputs, done = self._arrays
-        sim.compiled.env_outputs(
+        reward = torch.empty(self.batch_size[0], dtype=torch.float32)
+        sim = self.sim
+        sim.compiled.env_step(
             sim.state,
-            alive.numpy(),
-            advanced.cause.numpy(),
-            advanced.cycles.numpy(),
-            True,
+            actions.contiguous().numpy(),
+            ~done,
+            self.sync,
+            self.max_cycles_per_step,
             outputs,
             done,
             reward.numpy(),
@@ -269,11 +260,11 @@ class KeepawayEnv(EnvBase):
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         sim = self.sim
         actions = tensordict.get(keys.ACTION).reshape(-1).to(self.device).long()
-        alive = ~self._done
         # the simulator reads an action only where the keeper must decide: in both modes exactly the
         # fields flagged "deciding" by the previous step or reset, so other fields' actions are ignored
         if sim.compiled is not None:
             return self._compiled_step(actions)
+        alive = ~self._done
         first = sim.step(actions, active=alive)
         ended, cause = first.ended.clone(), first.end_cause.clone()
         if self.sync == "all":
