@@ -13,6 +13,14 @@ acting on its own world model; ``exact`` the true state.
 
     python benchmarks/keepaway_throughput.py [--cycles 40] [--repeats 5] [--batches 1 64 1024 8192]
         [--perception exact|server]
+
+``--env-steps-only`` times just ``KeepawayEnv.step_and_maybe_reset`` (what the Sarsa loop calls) with
+pre-drawn random actions, so the policy costs nothing: env steps (one per field) per second for each
+``--env-syncs`` mode and ``--env-batches`` size, on the whole-cycle path and, side by side, the default
+CPU path (fewer steps: it is slower by orders of magnitude).
+
+    python benchmarks/keepaway_throughput.py --env-steps-only [--env-batches 1 10 1024]
+        [--env-syncs all any] [--env-seconds 3]
 """
 
 from __future__ import annotations
@@ -115,6 +123,49 @@ def env_rate(
     return {"field_cycles_per_s": cycles / elapsed, "env_steps_per_s": batch * steps / elapsed}
 
 
+def env_step_rate(
+    batch: int, sync: str, kernels: str, seconds: float, preset: str, perception: str
+) -> dict[str, float]:
+    """Env steps (``step_and_maybe_reset`` calls times B) and calls per second, random actions drawn
+    beforehand, run for about ``seconds`` after a warm-up; with the steps that hit an episode end."""
+    env = KeepawayEnv(batch, device="cpu", seed=0, sync=sync, kernels=kernels, **task(preset, perception))
+    gen = torch.Generator().manual_seed(0)
+    actions = torch.randint(0, env.config.num_actions, (64, batch), generator=gen)
+    td = env.reset()
+    for i in range(5):  # warm-up (compilation or loading the kernels)
+        td.set(keys.ACTION, actions[i % 64])
+        _, td = env.step_and_maybe_reset(td)
+    calls = ends = 0
+    start = time.perf_counter()
+    while True:
+        for _ in range(16):
+            td.set(keys.ACTION, actions[calls % 64])
+            out, td = env.step_and_maybe_reset(td)
+            ends += int(out["next", keys.DONE].any())
+            calls += 1
+        elapsed = time.perf_counter() - start
+        if elapsed >= seconds:
+            break
+    return {
+        "env_steps_per_s": round(batch * calls / elapsed),
+        "calls_per_s": round(calls / elapsed),
+        "us_per_call": round(1e6 * elapsed / calls, 1),
+        "share_of_calls_with_an_end": round(ends / calls, 3),
+    }
+
+
+def env_steps_only(args: argparse.Namespace) -> None:
+    """``--env-steps-only``: the env's own step rate per sync mode and batch size, cycle vs default path."""
+    result: dict[str, object] = {"preset": args.preset, "perception": args.perception, "env": {}}
+    for sync in args.env_syncs:
+        for b in args.env_batches:
+            row = {"cycle": env_step_rate(b, sync, "cycle", args.env_seconds, args.preset, args.perception)}
+            if b <= args.reference_max_batch:
+                row["auto"] = env_step_rate(b, sync, "auto", args.env_seconds, args.preset, args.perception)
+            result["env"][f"sync={sync} B={b}"] = row
+    print(json.dumps(result, indent=2))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cycles", type=int, default=40)
@@ -132,7 +183,18 @@ def main() -> None:
         help="field-cycles per timed run of the whole-cycle path (at least --cycles cycles)",
     )
     parser.add_argument("--no-env", action="store_true", help="skip the TorchRL env")
+    parser.add_argument("--env-steps-only", action="store_true", help="time only env steps (see above)")
+    parser.add_argument("--env-batches", type=int, nargs="+", default=[1, 10, 1024])
+    parser.add_argument("--env-syncs", nargs="+", default=["all", "any"], choices=("all", "any"))
+    parser.add_argument("--env-seconds", type=float, default=3.0, help="timed seconds per env measurement")
+    parser.add_argument(
+        "--reference-max-batch", type=int, default=10, help="largest B timed on the default path"
+    )
     args = parser.parse_args()
+    if args.env_steps_only:
+        numba.set_num_threads(1)
+        env_steps_only(args)
+        return
     devices = args.devices or ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
     result: dict[str, object] = {
         "preset": args.preset,

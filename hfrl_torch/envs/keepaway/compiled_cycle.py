@@ -28,6 +28,8 @@ def _split(kernel: Callable[..., object], batch: int, *args: object) -> list[obj
     """Run ``kernel(*args, lo, hi)`` over field ranges, one per thread (``numba.get_num_threads()``,
     which ``threads=`` sets), and return the results; the kernels release the GIL."""
     global _POOL
+    if batch < 2 * MIN_FIELDS_PER_THREAD:
+        return [kernel(*args, 0, batch)]
     threads = max(1, min(numba.get_num_threads(), batch // MIN_FIELDS_PER_THREAD))
     if threads == 1:
         return [kernel(*args, 0, batch)]
@@ -143,6 +145,10 @@ class CompiledCycle:
         self.prm, self.ip, self.tabs, self.grid = task_arrays(config)
         self.rng = seed_streams(seed, batch)
         self.batch = batch
+        self._scratch = (np.zeros(batch, dtype=np.int64), np.zeros(batch, dtype=np.int64))
+        self._no_rewards = np.zeros(batch, dtype=np.float32)
+        self._no_actions = np.zeros(batch, dtype=np.int64)
+        self._no_first = np.zeros(batch, dtype=np.bool_)
         self._views: tuple[object, tuple[np.ndarray, ...]] | None = None
 
     def reseed(self, seed: int) -> None:
@@ -225,15 +231,120 @@ class CompiledCycle:
         ``first``; in place."""
         cycles = torch.zeros(self.batch, dtype=torch.long)
         cause = torch.zeros(self.batch, dtype=torch.long)
-        common = (*self.arrays(state), self.rng, actions.numpy(), first.numpy(), running.numpy())
-        tail = (self.prm, self.ip, self.tabs, self.grid, cycles.numpy(), cause.numpy())
+        self._advance(
+            state,
+            actions.numpy(),
+            first.numpy(),
+            running.numpy(),
+            sync,
+            restart,
+            max_cycles,
+            cycles.numpy(),
+            cause.numpy(),
+        )
+        return Advance(cycles=cycles, cause=cause)
+
+    def _advance(
+        self,
+        state: object,
+        actions: np.ndarray,
+        first: np.ndarray,
+        running: np.ndarray,
+        sync: str,
+        restart: bool,
+        max_cycles: int,
+        cycles: np.ndarray,
+        cause: np.ndarray,
+    ) -> None:
+        """:meth:`advance` on numpy arrays, writing the cycles and end causes into ``cycles``, ``cause``."""
+        common = (*self.arrays(state), self.rng, actions, first, running)
+        tail = (self.prm, self.ip, self.tabs, self.grid, cycles, cause)
         if sync == "all":
             ok = sum(_split(K.advance_fields, self.batch, *common, restart, max_cycles, *tail)) == 0
         else:
             ok = K.advance_any(*common, max_cycles, *tail)
         if not ok:
             raise RuntimeError("keepaway: no decision within max_cycles_per_step cycles")
-        return Advance(cycles=cycles, cause=cause)
+
+    def env_step(
+        self,
+        state: object,
+        actions: np.ndarray,
+        alive: np.ndarray,
+        sync: str,
+        max_cycles: int,
+        outputs: tuple[np.ndarray, ...],
+        done: np.ndarray,
+        reward: np.ndarray,
+    ) -> None:
+        """KeepawayEnv's step: the ``alive`` fields advanced with ``actions`` [B] (int64), then the
+        outputs, ``done`` and ``reward`` [B] (float32) written in place; two compiled calls."""
+        cycles, cause = self._scratch
+        self._advance(state, actions, alive, alive, sync, False, max_cycles, cycles, cause)
+        self.env_outputs(state, alive, cause, cycles, True, outputs, done, reward)
+
+    def env_reset(
+        self,
+        state: object,
+        mask: np.ndarray,
+        to_decision: bool,
+        max_cycles: int,
+        outputs: tuple[np.ndarray, ...],
+        done: np.ndarray,
+    ) -> None:
+        """KeepawayEnv's reset of the ``mask`` fields: new episodes, with ``to_decision`` run to their
+        first decisions (restarting episodes that end before it), and the outputs written in place."""
+        cycles, cause = self._scratch
+        self.reset(state, mask)
+        if to_decision:  # no first cycle, so no actions are read
+            self._advance(
+                state, self._no_actions, self._no_first, mask, "all", True, max_cycles, cycles, cause
+            )
+        self.env_outputs(state, mask, cause, cycles, False, outputs, done, self._no_rewards)
+
+    def reset(self, state: object, mask: np.ndarray) -> None:
+        """A new episode on the ``mask`` [B] fields (bool numpy), each drawn from its own stream, in
+        place; the other fields are untouched."""
+        a = self.arrays(state)
+        _split(K.reset_fields, self.batch, *a[:9], *a[11:], self.rng, mask, self.prm, self.ip)
+
+    def env_outputs(
+        self,
+        state: object,
+        fields: np.ndarray,
+        cause: np.ndarray,
+        cycles: np.ndarray,
+        stepping: bool,
+        outputs: tuple[np.ndarray, ...],
+        done: np.ndarray,
+        reward: np.ndarray,
+    ) -> None:
+        """KeepawayEnv's outputs after a step or a reset of ``fields``, in place (see
+        ``cycle_numba.env_outputs``; ``outputs`` in the env's ``_OUTPUT_KEYS`` order)."""
+        a = self.arrays(state)
+        _split(
+            K.env_outputs,
+            self.batch,
+            a[0],
+            a[2],
+            a[4],
+            a[5],
+            a[6],
+            a[7],
+            a[8],
+            a[9],
+            a[10],
+            a[11],
+            fields,
+            cause,
+            cycles,
+            stepping,
+            self.prm,
+            self.ip,
+            *outputs,
+            done,
+            reward,
+        )
 
     def play(
         self, state: object, policy: str, episodes_per_field: int, max_cycles: int

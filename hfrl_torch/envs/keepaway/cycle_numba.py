@@ -1562,3 +1562,132 @@ def play(
                     ip,
                 )
     return total
+
+
+@numba.njit(cache=True, nogil=True)
+def reset_fields(
+    pos: np.ndarray,
+    vel: np.ndarray,
+    body: np.ndarray,
+    counter: np.ndarray,
+    ep: np.ndarray,
+    last_dec: np.ndarray,
+    prev_holder: np.ndarray,
+    pass_target: np.ndarray,
+    action_start: np.ndarray,
+    spos: np.ndarray,
+    svel: np.ndarray,
+    sbody: np.ndarray,
+    rng: np.ndarray,
+    mask: np.ndarray,
+    prm: np.ndarray,
+    ip: np.ndarray,
+    lo: int,
+    hi: int,
+) -> None:
+    """KeepawaySimulator.reset on the ``mask`` fields of ``lo .. hi - 1``: a new episode drawn from
+    each field's own generator, in place (the other fields, and every clock, stay as they are)."""
+    for b in range(lo, hi):
+        if mask[b]:
+            _reset_field(
+                b,
+                pos,
+                vel,
+                body,
+                counter,
+                ep,
+                last_dec,
+                prev_holder,
+                pass_target,
+                action_start,
+                spos,
+                svel,
+                sbody,
+                rng,
+                prm,
+                ip,
+            )
+
+
+@numba.njit(cache=True, nogil=True)
+def env_outputs(
+    pos: np.ndarray,
+    body: np.ndarray,
+    ep: np.ndarray,
+    last_dec: np.ndarray,
+    prev_holder: np.ndarray,
+    pass_target: np.ndarray,
+    action_start: np.ndarray,
+    clock: np.ndarray,
+    phase: np.ndarray,
+    spos: np.ndarray,
+    fields: np.ndarray,
+    cause: np.ndarray,
+    cycles: np.ndarray,
+    stepping: bool,
+    prm: np.ndarray,
+    ip: np.ndarray,
+    obs_out: np.ndarray,
+    keeper_out: np.ndarray,
+    mask_out: np.ndarray,
+    ep_out: np.ndarray,
+    cause_out: np.ndarray,
+    end_rewards_out: np.ndarray,
+    step_cycles_out: np.ndarray,
+    deciding_out: np.ndarray,
+    done: np.ndarray,
+    reward_out: np.ndarray,
+    lo: int,
+    hi: int,
+) -> None:
+    """KeepawayEnv's outputs of fields ``lo .. hi - 1``, in place, after a step (``stepping``: the
+    ``fields`` were alive and advanced, ``cause`` [B] how they ended, ``cycles`` [B] how long they ran;
+    ``reward_out`` [B] the step's reward) or after a reset of the ``fields``: the observation, keeper,
+    action mask and episode cycles of those fields, their end cause, end rewards and step cycles, the
+    ``done`` flags and, for every field, whether it decides now."""
+    n, m = ip[N], ip[M]
+    kpos = np.empty((n, 2))
+    tpos = np.empty((m, 2))
+    order = np.empty(n - 1, dtype=np.int64)
+    obs = np.empty(obs_out.shape[1])
+    for b in range(lo, hi):
+        h, _, must = _decision(
+            b, pos, clock, phase, spos, pass_target, prev_holder, ep, action_start, prm, ip
+        )
+        here = fields[b]
+        if stepping:
+            ended = cause[b] != 0
+            reward = 0
+            if ended:
+                latest = -1
+                for k in range(n):
+                    latest = max(latest, last_dec[b, k])
+                reward = ep[b] - latest if latest >= 0 else ep[b]
+                done[b] = True
+                cause_out[b] = cause[b]
+                for k in range(n):
+                    end_rewards_out[b, k] = ep[b] - last_dec[b, k] if last_dec[b, k] >= 0 else 0
+            elif here:
+                if must and last_dec[b, h] >= 0:
+                    reward = ep[b] - last_dec[b, h]
+                cause_out[b] = 0
+                for k in range(n):
+                    end_rewards_out[b, k] = 0.0
+            reward_out[b] = reward
+            step_cycles_out[b] = cycles[b] if here else 0
+        elif here:
+            cause_out[b] = 0
+            for k in range(n):
+                end_rewards_out[b, k] = 0.0
+            step_cycles_out[b] = 0
+            done[b] = False
+        if here:
+            _view(b, h, pos, body, spos, ip, kpos, tpos)
+            _state_vars(kpos, tpos, h, order, obs)
+            for i in range(obs.shape[0]):
+                obs_out[b, i] = obs[i]
+            keeper_out[b] = h
+            for a in range(mask_out.shape[1]):
+                mask_out[b, a] = True
+            ep_out[b] = ep[b]
+        deciding_out[b] = must and not done[b]

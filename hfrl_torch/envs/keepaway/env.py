@@ -90,6 +90,13 @@ class KeepawayEnv(EnvBase):
         self._make_specs()
         self._outputs = self._blank_outputs()
         self._done = torch.ones(batch_size, dtype=torch.bool, device=self.device)
+        # kernels="cycle": the outputs and done flags as numpy views the compiled step writes in place
+        # (the tensors are only ever updated in place on that path, so the views stay valid)
+        self._arrays = (
+            (tuple(self._outputs[k].numpy() for k in _OUTPUT_KEYS), self._done.numpy())
+            if self.sim.compiled is not None
+            else None
+        )
 
     # ------------------------------------------------------------------------- specs
 
@@ -158,10 +165,8 @@ class KeepawayEnv(EnvBase):
         return ended, cause, cycles
 
     def _decisions(self) -> tuple[Decision, torch.Tensor]:
-        """The simulator's decision and the holder's state variables (one compiled call on the
-        whole-cycle path)."""
-        if self.sim.compiled is not None:
-            return self.sim.compiled_decisions()
+        """The simulator's decision and the holder's state variables (the torch path's; the
+        whole-cycle path writes them in ``cycle_numba.env_outputs``)."""
         dec = self.sim.decision()
         return dec, self.sim.observe(dec.holder)[0]
 
@@ -195,15 +200,54 @@ class KeepawayEnv(EnvBase):
 
     # ------------------------------------------------------------------ EnvBase API
 
+    def _compiled_result(self, reward: torch.Tensor | None) -> TensorDict:
+        """:meth:`_result` without TensorDict's per-entry checks: every tensor here is a fresh CPU
+        tensor of this env's batch size (``kernels="cycle"``)."""
+        done = self._done.unsqueeze(-1)
+        source = {k: v.clone() for k, v in self._outputs.items()}
+        source[keys.DONE] = done.clone()
+        source[keys.TERMINATED] = done.clone()
+        source[keys.TRUNCATED] = torch.zeros_like(done)
+        if reward is not None:
+            source[keys.REWARD] = reward.unsqueeze(-1)
+        return TensorDict._new_unsafe(source, batch_size=self.batch_size, device=self.device)
+
+    def _compiled_reset(self, mask: torch.Tensor) -> TensorDict:
+        """:meth:`_reset` on the whole-cycle path: restart, (``"all"``) run to the first decisions and
+        write the outputs in compiled calls, with no torch work per field."""
+        outputs, done = self._arrays
+        mask = mask.to(torch.bool).contiguous().numpy()
+        sim = self.sim
+        sim.compiled.env_reset(sim.state, mask, self.sync == "all", self.max_cycles_per_step, outputs, done)
+        return self._compiled_result(None)
+
+    def _compiled_step(self, actions: torch.Tensor) -> TensorDict:
+        """:meth:`_step` on the whole-cycle path: every alive field advanced, then its outputs, reward
+        and done flag written, in two compiled calls."""
+        outputs, done = self._arrays
+        reward = torch.empty(self.batch_size[0], dtype=torch.float32)
+        sim = self.sim
+        sim.compiled.env_step(
+            sim.state,
+            actions.contiguous().numpy(),
+            ~done,
+            self.sync,
+            self.max_cycles_per_step,
+            outputs,
+            done,
+            reward.numpy(),
+        )
+        return self._compiled_result(reward)
+
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: object) -> TensorDictBase:
         if tensordict is not None and keys.RESET in tensordict:
             mask = tensordict.get(keys.RESET).reshape(-1).to(self.device)
         else:
             mask = torch.ones(self.batch_size, dtype=torch.bool, device=self.device)
+        if self.sim.compiled is not None:
+            return self._compiled_reset(mask)
         self.sim.reset(mask)
-        if self.sync == "all" and self.sim.compiled is not None:
-            self.sim.advance(None, mask, first=False, restart=True, max_cycles=self.max_cycles_per_step)
-        elif self.sync == "all":  # "any": the restarted fields reach their first decision in later steps
+        if self.sync == "all":  # "any": the restarted fields reach their first decision in later steps
             self._run_until_decision(mask, restart_ended=True)
         out = self._outputs
         out[keys.END_CAUSE] = torch.where(mask, 0, out[keys.END_CAUSE])
@@ -216,27 +260,20 @@ class KeepawayEnv(EnvBase):
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         sim = self.sim
         actions = tensordict.get(keys.ACTION).reshape(-1).to(self.device).long()
-        alive = ~self._done
         # the simulator reads an action only where the keeper must decide: in both modes exactly the
         # fields flagged "deciding" by the previous step or reset, so other fields' actions are ignored
-        if sim.compiled is not None:  # the whole step in one compiled call
-            advanced = sim.advance(actions, alive, sync=self.sync, max_cycles=self.max_cycles_per_step)
-            cause, cycles = advanced.cause, advanced.cycles
-            ended = cause != 0
+        if sim.compiled is not None:
+            return self._compiled_step(actions)
+        alive = ~self._done
+        first = sim.step(actions, active=alive)
+        ended, cause = first.ended.clone(), first.end_cause.clone()
+        if self.sync == "all":
+            later_ended, later_cause, cycles = self._run_until_decision(alive & ~ended, restart_ended=False)
         else:
-            first = sim.step(actions, active=alive)
-            ended, cause = first.ended.clone(), first.end_cause.clone()
-            if self.sync == "all":
-                later_ended, later_cause, cycles = self._run_until_decision(
-                    alive & ~ended, restart_ended=False
-                )
-            else:
-                later_ended, later_cause, cycles = self._run_until_any_decision(
-                    alive & ~ended, bool(ended.any())
-                )
-            ended |= later_ended
-            cause = torch.where(later_ended, later_cause, cause)
-            cycles = cycles + alive.long()
+            later_ended, later_cause, cycles = self._run_until_any_decision(alive & ~ended, bool(ended.any()))
+        ended |= later_ended
+        cause = torch.where(later_ended, later_cause, cause)
+        cycles = cycles + alive.long()
 
         state = sim.state
         decided = self._decisions()
@@ -312,8 +349,9 @@ class KeepawayEnv(EnvBase):
         if not isinstance(done, torch.Tensor) or done.shape != self._done.shape:
             raise ValueError(f"keepaway env 'done' does not fit this env's {tuple(self._done.shape)} fields")
         self.sim.load_state_dict(state["sim"])
-        self._outputs = {k: v.to(self.device).clone() for k, v in outputs.items()}
-        self._done = done.to(device=self.device, dtype=torch.bool).clone()
+        for k, v in outputs.items():  # in place: the compiled path's views of them stay valid
+            self._outputs[k].copy_(v)
+        self._done.copy_(done)
 
     def _set_seed(self, seed: int | None) -> None:
         if seed is not None:

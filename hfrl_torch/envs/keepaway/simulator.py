@@ -302,7 +302,16 @@ class KeepawaySimulator:
         )
 
     def reset(self, mask: Tensor | None = None) -> None:
-        """Start a new episode on the fields where ``mask`` [B] is true (all if ``None``)."""
+        """Start a new episode on the fields where ``mask`` [B] is true (all if ``None``).
+
+        ``kernels="cycle"``: in place, per field in compiled code, drawn from each field's own random
+        stream (the distribution of :meth:`fresh_state`), so a field's play does not depend on which
+        other fields restart."""
+        if self.compiled is not None:
+            if mask is None:
+                mask = torch.ones(self.batch_size, dtype=torch.bool)
+            self.compiled.reset(self.state, mask.to(torch.bool).contiguous().numpy())
+            return
         fresh = self.fresh_state()
         self.state = fresh if mask is None else fresh.where(mask.to(self.device), self.state)
 
@@ -689,7 +698,7 @@ class KeepawaySimulator:
         outcome = CycleOutcome(
             ended=ended,
             end_cause=cause,
-            episode_cycles=state.episode_cycles,
+            episode_cycles=state.episode_cycles.clone(),  # the compiled reset below works in place
             episode_end_rewards=self.episode_end_rewards(),
         )
         if auto_reset and bool(ended.any()):
