@@ -25,7 +25,8 @@ _JIT = numba.njit(cache=True, nogil=True)
 def tile_row(
     values: np.ndarray, widths: np.ndarray, tilings: int, num_actions: int, size: int, out: np.ndarray
 ):
-    """Active tiles ``out`` [A, F * T] of one state ``values`` [F] (float64), as ``hash_tiles(tile_coordinates)``."""
+    """Active tiles ``out`` [A, F * T] of one state ``values`` [F] (float64): ``hash_tiles(tile_coordinates)``
+    of ``tile_coding``, the same int64 arithmetic."""
     f = widths.shape[0]
     group_size = f * tilings
     span = num_actions * group_size
