@@ -22,25 +22,37 @@ _JIT = numba.njit(cache=True, nogil=True)
 
 
 @_JIT
+def _mod_prime(x: np.int64) -> np.int64:
+    """``x mod (2^31 - 1)`` in [0, 2^31 - 1) for any int64 (Python's ``%``, as ``torch.remainder``), without
+    a division or a branch: 2^31 = 1 modulo the Mersenne prime, so folding the high bits onto the low ones
+    keeps the residue."""
+    s = (x >> 31) + (x & _PRIME)  # arithmetic shift: the floor, negative x included
+    s = (s >> 31) + (s & _PRIME)  # now in [-2, 2^31 + 1]
+    s += _PRIME & (s >> 63)  # negative: add the prime
+    return s - (_PRIME & ((_PRIME - 1 - s) >> 63))  # >= the prime: subtract it
+
+
+@_JIT
 def tile_row(
     values: np.ndarray, widths: np.ndarray, tilings: int, num_actions: int, size: int, out: np.ndarray
-):
-    """Active tiles ``out`` [A, F * T] of one state ``values`` [F] (float64): ``hash_tiles(tile_coordinates)``
-    of ``tile_coding``, the same int64 arithmetic."""
+) -> None:
+    """Active tiles ``out`` [A, F * T] of one state ``values`` [F]: ``hash_tiles(tile_coordinates)`` of
+    ``tile_coding``, the same float64 coordinates and int64 hash."""
     f = widths.shape[0]
-    group_size = f * tilings
-    span = num_actions * group_size
+    span = num_actions * f * tilings
+    low_bits = size - 1 if size & (size - 1) == 0 else -1
     for v in range(f):
-        q = np.int64(math.floor((values[v] / widths[v]) * tilings))
+        q = np.int64(math.floor((np.float64(values[v]) / widths[v]) * tilings))
+        base = q // tilings
+        rest = q - base * tilings  # tiling j's coordinate: base while j <= rest, base - 1 after
         for j in range(tilings):
-            coordinate = (q - j) // tilings
+            key = (base - np.int64(j > rest)) * span + v * tilings + j
             for a in range(num_actions):
-                key = coordinate * span + (a * f + v) * tilings + j
-                h = key % _PRIME
-                h = (h * _MUL1 + _ADD1) % _PRIME
+                h = _mod_prime(key + a * f * tilings)
+                h = _mod_prime(h * _MUL1 + _ADD1)
                 h = h ^ (h >> 15)
-                h = (h * _MUL2 + _ADD2) % _PRIME
-                out[a, v * tilings + j] = h % size
+                h = _mod_prime(h * _MUL2 + _ADD2)
+                out[a, v * tilings + j] = h & low_bits if low_bits >= 0 else h % size
 
 
 @_JIT

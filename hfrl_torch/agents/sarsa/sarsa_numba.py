@@ -161,7 +161,7 @@ def _replace_traces(
 
 
 @_JIT
-def decide_rows(
+def _decide(
     weight: np.ndarray,
     tables: np.ndarray,
     learners: np.ndarray,
@@ -182,9 +182,12 @@ def decide_rows(
     trace_value: np.ndarray,
     action: np.ndarray,
     chosen: np.ndarray,
-) -> None:
+) -> bool:
     """``SarsaLambda.decide`` of rows ``learners`` [M] from their ``tiles`` [M, A, N] and ``q`` [M, A]:
-    choose (by ``choose`` [M, A]), update every table from the same weights, then Q_LastAction and traces."""
+    choose (by ``choose`` [M, A]), update every table from the same weights, then Q_LastAction and traces;
+    False (and nothing changed) when the rows do not name distinct learners."""
+    if not _distinct(learners):
+        return False
     m = learners.shape[0]
     step, gamma = params[STEP], params[GAMMA]
     delta = np.zeros(m, dtype=q.dtype)
@@ -215,6 +218,72 @@ def decide_rows(
             trace_index[lr], trace_value[lr], tiles[r], mask[r], act, starting, params, skip_matching
         )
         last_action[lr] = act
+    return True
+
+
+@_JIT
+def decide_values(
+    weight: np.ndarray,
+    tables: np.ndarray,
+    learners: np.ndarray,
+    tiles: np.ndarray,
+    q: np.ndarray,
+    choose: np.ndarray,
+    mask: np.ndarray,
+    reward: np.ndarray,
+    tie: np.ndarray,
+    noise: np.ndarray,
+    draw: np.ndarray,
+    params: np.ndarray,
+    explore: bool,
+    skip_matching: bool,
+    last_action: np.ndarray,
+    q_last: np.ndarray,
+    trace_index: np.ndarray,
+    trace_value: np.ndarray,
+    action: np.ndarray,
+    chosen: np.ndarray,
+) -> bool:
+    """:func:`_decide` on the caller's tiles and Q (``decide(values=..., choose_by=...)``)."""
+    return _decide(
+        weight, tables, learners, tiles, q, choose, mask, reward, tie, noise, draw, params, explore,
+        skip_matching, last_action, q_last, trace_index, trace_value, action, chosen,
+    )  # fmt: skip
+
+
+@_JIT
+def decide_states(
+    weight: np.ndarray,
+    widths: np.ndarray,
+    shape: np.ndarray,
+    tables: np.ndarray,
+    learners: np.ndarray,
+    obs: np.ndarray,
+    mask: np.ndarray,
+    reward: np.ndarray,
+    tie: np.ndarray,
+    noise: np.ndarray,
+    draw: np.ndarray,
+    params: np.ndarray,
+    explore: bool,
+    skip_matching: bool,
+    last_action: np.ndarray,
+    q_last: np.ndarray,
+    trace_index: np.ndarray,
+    trace_value: np.ndarray,
+    action: np.ndarray,
+    chosen: np.ndarray,
+) -> bool:
+    """Tiles and Q of the rows' states ``obs`` [M, F] (``shape``: tilings, actions, size), then
+    :func:`_decide` choosing by Q, in one call."""
+    tiles = tile_indices(obs, widths, shape[0], shape[1], shape[2])
+    sums = np.empty(tiles.shape[:2], dtype=np.float64)
+    table_sums(weight, tables[learners], tiles, sums)
+    q = sums.astype(weight.dtype)
+    return _decide(
+        weight, tables, learners, tiles, q, q, mask, reward, tie, noise, draw, params, explore,
+        skip_matching, last_action, q_last, trace_index, trace_value, action, chosen,
+    )  # fmt: skip
 
 
 @_JIT
@@ -256,9 +325,8 @@ class SarsaLambdaNumba(SarsaLambda):
         if coder.weight.device.type != "cpu":
             raise ValueError(f"kernels='numba' runs on the CPU only, not {coder.weight.device}; use 'torch'")
         super().__init__(coder, *args, **kwargs)
-        self._tables = self.tables.numpy()
-        dtype = coder.weight.numpy().dtype
-        self._params = np.zeros(5, dtype=dtype)
+        self._shape = np.array([coder.tilings, coder.num_actions, coder.size], dtype=np.int64)
+        self._params = np.zeros(5, dtype=coder.weight.numpy().dtype)
         self._params[[STEP, GAMMA, DECAY, MIN_TRACE, EPSILON]] = (
             self.step_size,
             self.gamma,
@@ -267,21 +335,40 @@ class SarsaLambdaNumba(SarsaLambda):
             self.epsilon,
         )
         self._skip_matching = self.gamma * self.lambda_ < self.min_trace
+        self._tensors: tuple[torch.Tensor | None, ...] = (None,) * 7
+        self._pointers: tuple[int, ...] = ()
+        self._arrays: tuple[np.ndarray, ...] = ()
 
-    @torch.no_grad()
+    def _views(self) -> tuple[np.ndarray, ...]:
+        """Numpy views of (weight, widths, tables, last_action, q_last, trace_index, trace_value), made
+        again only when a tensor was replaced or its storage moved (``load_state_dict`` copies in place)."""
+        coder = self.coder
+        tensors = (
+            coder.weight,
+            coder.widths,
+            self.tables,
+            self.last_action,
+            self.q_last,
+            self.trace_index,
+            self.trace_value,
+        )
+        pointers = tuple(t.data_ptr() for t in tensors)
+        if pointers != self._pointers or any(t is not o for t, o in zip(tensors, self._tensors, strict=True)):
+            self._tensors, self._pointers = tensors, pointers
+            self._arrays = tuple(t.detach().numpy() for t in tensors)
+        return self._arrays
+
     def action_values(self, learners: torch.Tensor, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The active tiles [M, A, N] and Q [M, A] of each row's state, compiled."""
         coder = self.coder
         if obs.shape[-1] != coder.num_features:
             raise ValueError(f"expected {coder.num_features} state variables, got shape {tuple(obs.shape)}")
-        tiles = tile_indices(
-            _np(obs, torch.float64), coder.widths.numpy(), coder.tilings, coder.num_actions, coder.size
-        )
+        weight, widths, tables = self._views()[:3]
+        tiles = tile_indices(_np(obs), widths, coder.tilings, coder.num_actions, coder.size)
         q = np.empty(tiles.shape[:2], dtype=np.float64)
-        table_sums(coder.weight.numpy(), self._tables[_np(learners, torch.int64)], tiles, q)
-        return torch.from_numpy(tiles), torch.from_numpy(q).to(coder.weight.dtype)
+        table_sums(weight, tables[_np(learners, torch.int64)], tiles, q)
+        return torch.from_numpy(tiles), torch.from_numpy(q.astype(weight.dtype))
 
-    @torch.no_grad()
     def decide(
         self,
         learners: torch.Tensor,
@@ -294,54 +381,34 @@ class SarsaLambdaNumba(SarsaLambda):
         choose_by: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """:meth:`SarsaLambda.decide`, compiled: the same arguments, actions and state."""
-        rows = _np(learners, torch.int64)
-        if not _distinct(rows):
-            raise ValueError("decide: rows must name distinct learners")
-        tiles, q = self.action_values(learners, obs) if values is None else values
-        m, a = q.shape
-        tie = torch.rand(m, a, generator=self.generator)
-        noise = torch.rand(m, a, generator=self.generator)
-        draw = torch.rand(m, generator=self.generator)
-        dtype = self.coder.weight.dtype
-        tiles_np, q_np = _np(tiles, torch.int64), _np(q, dtype)
+        coder = self.coder
+        if obs.shape[-1] != coder.num_features:
+            raise ValueError(f"expected {coder.num_features} state variables, got shape {tuple(obs.shape)}")
+        weight, widths, tables, last_action, q_last, trace_index, trace_value = self._views()
+        m, a = mask.shape
+        tie = torch.rand(m, a, generator=self.generator).numpy()
+        noise = torch.rand(m, a, generator=self.generator).numpy()
+        draw = torch.rand(m, generator=self.generator).numpy()
         action = np.empty(m, dtype=np.int64)
-        chosen = np.empty((m, tiles_np.shape[2]), dtype=np.int64)
-        decide_rows(
-            self.coder.weight.numpy(),
-            self._tables,
-            rows,
-            tiles_np,
-            q_np,
-            q_np if choose_by is None else _np(choose_by),
-            _np(mask, torch.bool),
-            _np(reward, dtype),
-            tie.numpy(),
-            noise.numpy(),
-            draw.numpy(),
-            self._params,
-            explore,
-            self._skip_matching,
-            self.last_action.numpy(),
-            self.q_last.numpy(),
-            self.trace_index.numpy(),
-            self.trace_value.numpy(),
-            action,
-            chosen,
-        )
+        chosen = np.empty((m, coder.active_tiles), dtype=np.int64)
+        rows, dtype = _np(learners, torch.int64), coder.weight.dtype
+        common = (_np(mask, torch.bool), _np(reward, dtype), tie, noise, draw, self._params, explore)
+        state = (self._skip_matching, last_action, q_last, trace_index, trace_value, action, chosen)
+        if values is None and choose_by is None:
+            ok = decide_states(weight, widths, self._shape, tables, rows, _np(obs), *common, *state)
+        else:
+            tiles, q = self.action_values(learners, obs) if values is None else values
+            q_np = _np(q, dtype)
+            choose = q_np if choose_by is None else _np(choose_by)
+            ok = decide_values(weight, tables, rows, _np(tiles, torch.int64), q_np, choose, *common, *state)
+        if not ok:
+            raise ValueError("decide: rows must name distinct learners")
         self.chosen_tiles = torch.from_numpy(chosen)
         return torch.from_numpy(action)
 
-    @torch.no_grad()
     def end_episode(self, learners: torch.Tensor, reward: torch.Tensor) -> None:
         """:meth:`SarsaLambda.end_episode`, compiled."""
-        end_rows(
-            self.coder.weight.numpy(),
-            self._tables,
-            _np(learners, torch.int64),
-            _np(reward, self.coder.weight.dtype),
-            self._params,
-            self.last_action.numpy(),
-            self.q_last.numpy(),
-            self.trace_index.numpy(),
-            self.trace_value.numpy(),
-        )
+        weight, _, tables, last_action, q_last, trace_index, trace_value = self._views()
+        rows = _np(learners, torch.int64)
+        reward_np = _np(reward, self.coder.weight.dtype)
+        end_rows(weight, tables, rows, reward_np, self._params, last_action, q_last, trace_index, trace_value)
