@@ -47,7 +47,7 @@ def decide_case(cls: type[SarsaLambda], m: int, lambda_: float, repeats: int) ->
     obs = [torch.rand(m, 13, generator=gen) * 15 for _ in range(8)]
     mask = torch.ones(m, 3, dtype=torch.bool)
     rows, reward = torch.arange(m), torch.ones(m)
-    calls = max(3, min(300, 3000 // m))
+    calls = max(2, min(200, 1000 // m))
     return best_microseconds(lambda i: agent.decide(rows, obs[i % 8], mask, reward), calls, repeats)
 
 
@@ -60,7 +60,7 @@ def tamer_cases(kernels: str, m: int, repeats: int) -> dict[str, float]:
     owner = torch.arange(m) % TABLES
     tamer.record(torch.ones(m, dtype=torch.bool), owner, tiles[:, 0], torch.zeros(m, dtype=torch.float64))
     feedback, when = torch.ones(m), torch.full((m,), 0.3, dtype=torch.float64)
-    calls = max(3, min(300, 3000 // m))
+    calls = max(2, min(200, 1000 // m))
     return {
         "values_us": best_microseconds(lambda i: tamer.values(owner, tiles), calls, repeats),
         "give_us": best_microseconds(lambda i: tamer.give(feedback, when), calls, repeats),
@@ -70,7 +70,7 @@ def tamer_cases(kernels: str, m: int, repeats: int) -> dict[str, float]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rows", type=int, nargs="+", default=[1, 10, 100, 1000])
-    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
     torch.set_num_threads(1)
     numba.set_num_threads(1)
