@@ -335,16 +335,18 @@ class SarsaLambdaNumba(SarsaLambda):
             self.epsilon,
         )
         self._skip_matching = self.gamma * self.lambda_ < self.min_trace
-        self._tensors: tuple[torch.Tensor | None, ...] = (None,) * 7
-        self._pointers: tuple[int, ...] = ()
+        self._key: tuple[int, ...] = ()
+        self._tensors: tuple[torch.Tensor, ...] = ()
         self._arrays: tuple[np.ndarray, ...] = ()
 
     def _views(self) -> tuple[np.ndarray, ...]:
         """Numpy views of (weight, widths, tables, last_action, q_last, trace_index, trace_value), made
-        again only when a tensor was replaced or its storage moved (``load_state_dict`` copies in place)."""
+        again only when a tensor was replaced or the weights' storage moved (``load_state_dict`` and
+        ``forget_episodes`` work in place)."""
         coder = self.coder
+        weight = coder.weight
         tensors = (
-            coder.weight,
+            weight,
             coder.widths,
             self.tables,
             self.last_action,
@@ -352,9 +354,9 @@ class SarsaLambdaNumba(SarsaLambda):
             self.trace_index,
             self.trace_value,
         )
-        pointers = tuple(t.data_ptr() for t in tensors)
-        if pointers != self._pointers or any(t is not o for t, o in zip(tensors, self._tensors, strict=True)):
-            self._tensors, self._pointers = tensors, pointers
+        key = (*map(id, tensors), weight.data_ptr())
+        if key != self._key:
+            self._key, self._tensors = key, tensors  # the tensors are kept so that their ids stay theirs
             self._arrays = tuple(t.detach().numpy() for t in tensors)
         return self._arrays
 
