@@ -19,9 +19,17 @@ import torch
 from hfrl_torch.models.tile_coding import _ADD1, _ADD2, _MUL1, _MUL2, _PRIME, TileCoding
 
 _JIT = numba.njit(cache=True, nogil=True)
+_INLINE = numba.njit(cache=True, nogil=True, inline="always")
 
 
-@_JIT
+# unsigned copies for the multiply-add rounds: operands below 2^31, so LLVM multiplies 32 x 32 -> 64 bits
+# and vectorises the loop over tilings
+_P = np.uint64(_PRIME)
+_M1, _A1, _M2, _A2 = np.uint64(_MUL1), np.uint64(_ADD1), np.uint64(_MUL2), np.uint64(_ADD2)
+_S31, _S15 = np.uint64(31), np.uint64(15)
+
+
+@_INLINE
 def _mod_prime(x: np.int64) -> np.int64:
     """``x mod (2^31 - 1)`` in [0, 2^31 - 1) for any int64 (Python's ``%``, as ``torch.remainder``), without
     a division or a branch: 2^31 = 1 modulo the Mersenne prime, so folding the high bits onto the low ones
@@ -32,27 +40,40 @@ def _mod_prime(x: np.int64) -> np.int64:
     return s - (_PRIME & ((_PRIME - 1 - s) >> 63))  # >= the prime: subtract it
 
 
+@_INLINE
+def _mod_prime_unsigned(x: np.uint64) -> np.uint64:
+    """``x mod (2^31 - 1)`` for x < 2^63 (a product of two residues plus a constant)."""
+    s = (x >> _S31) + (x & _P)
+    s = (s >> _S31) + (s & _P)
+    return s - _P if s >= _P else s
+
+
 @_JIT
 def tile_row(
     values: np.ndarray, widths: np.ndarray, tilings: int, num_actions: int, size: int, out: np.ndarray
 ) -> None:
     """Active tiles ``out`` [A, F * T] of one state ``values`` [F]: ``hash_tiles(tile_coordinates)`` of
-    ``tile_coding``, the same float64 coordinates and int64 hash."""
+    ``tile_coding``, the same float64 coordinates and int64 hash (keys wrap as torch's int64 do)."""
     f = widths.shape[0]
     span = num_actions * f * tilings
-    low_bits = size - 1 if size & (size - 1) == 0 else -1
+    low_bits = np.uint64(size - 1)
+    power_of_two = size & (size - 1) == 0
+    keys = np.empty(tilings, dtype=np.int64)
     for v in range(f):
         q = np.int64(math.floor((np.float64(values[v]) / widths[v]) * tilings))
         base = q // tilings
         rest = q - base * tilings  # tiling j's coordinate: base while j <= rest, base - 1 after
         for j in range(tilings):
-            key = (base - np.int64(j > rest)) * span + v * tilings + j
-            for a in range(num_actions):
-                h = _mod_prime(key + a * f * tilings)
-                h = _mod_prime(h * _MUL1 + _ADD1)
-                h = h ^ (h >> 15)
-                h = _mod_prime(h * _MUL2 + _ADD2)
-                out[a, v * tilings + j] = h & low_bits if low_bits >= 0 else h % size
+            keys[j] = (base - np.int64(j > rest)) * span + v * tilings + j
+        for a in range(num_actions):
+            group = np.int64(a * f * tilings)
+            row = out[a, v * tilings : (v + 1) * tilings]
+            for j in range(tilings):
+                h = np.uint64(_mod_prime(keys[j] + group))
+                h = _mod_prime_unsigned(h * _M1 + _A1)
+                h = h ^ (h >> _S15)
+                h = _mod_prime_unsigned(h * _M2 + _A2)
+                row[j] = np.int64(h & low_bits) if power_of_two else np.int64(h) % size
 
 
 @_JIT

@@ -15,6 +15,7 @@ from hfrl_torch.agents.sarsa import (
     resolve_learner_kernels,
     sarsa_keepers,
 )
+from hfrl_torch.agents.sarsa.sarsa_numba import _sort_tiles
 from hfrl_torch.agents.tamer.keeper_tamer import KeeperTamer
 from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.envs.keepaway import KeepawayConfig
@@ -29,15 +30,24 @@ WIDTHS = keepaway_tile_widths()
 TOL = {"rtol": 1e-5, "atol": 1e-5}
 
 
-@pytest.mark.parametrize(("size", "tilings", "scale"), [(2**20, 32, 20.0), (1000, 7, 1e4), (1, 32, 5.0)])
+@pytest.mark.parametrize(
+    ("size", "tilings", "scale"), [(2**20, 32, 20.0), (1000, 7, 1e4), (1, 32, 5.0), (2**30, 32, 1e16)]
+)
 def test_tile_indices_equal_torch_bit_for_bit(size, tilings, scale):
     gen = torch.Generator().manual_seed(size)
     coder = TileCoding(WIDTHS, 3, tilings=tilings, size=size)
     obs = (torch.rand(50, 13, generator=gen) * 2 - 0.5) * scale  # negative values too (floor, not truncation)
     obs[0] = torch.tensor(WIDTHS) * 3  # exactly on tile boundaries
-    assert torch.equal(compiled_tiles(coder, obs), coder.tiles(obs))
+    assert torch.equal(compiled_tiles(coder, obs), coder.tiles(obs))  # 1e16: int64 keys wrap alike
     with pytest.raises(ValueError, match="expected 13 state variables"):
         compiled_tiles(coder, obs[:, :5])
+
+
+def test_tile_sort():
+    gen = torch.Generator().manual_seed(0)
+    for top in (1, 2**11, 2**20, 2**30):
+        tiles = torch.randint(0, top, (1248,), generator=gen)
+        assert torch.equal(torch.from_numpy(_sort_tiles(tiles.numpy())), tiles.sort().values)
 
 
 def test_compiled_sums_and_adds_match_torch():

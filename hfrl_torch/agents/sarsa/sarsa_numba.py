@@ -79,6 +79,32 @@ def _distinct(learners: np.ndarray) -> bool:
 
 
 @_JIT
+def _sort_tiles(tiles: np.ndarray) -> np.ndarray:
+    """Tile indices (>= 0) sorted ascending: a least-significant-digit radix sort, 11 bits a pass (about
+    5 x faster than numba's quicksort on one action's 416 tiles)."""
+    n = tiles.shape[0]
+    out, spare = tiles.copy(), np.empty_like(tiles)
+    top = 0
+    for i in range(n):
+        top = max(top, out[i])
+    counts = np.empty(2049, dtype=np.int64)
+    shift = 0
+    while top >> shift > 0:
+        counts[:] = 0
+        for i in range(n):
+            counts[((out[i] >> shift) & 2047) + 1] += 1
+        for d in range(2048):
+            counts[d + 1] += counts[d]
+        for i in range(n):
+            d = (out[i] >> shift) & 2047
+            spare[counts[d]] = out[i]
+            counts[d] += 1
+        out, spare = spare, out
+        shift += 11
+    return out
+
+
+@_JIT
 def _add_traced(w: np.ndarray, index: np.ndarray, value: np.ndarray, scale) -> None:
     """``w[index[c]] += scale * value[c]`` over the nonzero slots (line 17)."""
     for c in range(index.shape[0]):
@@ -102,7 +128,7 @@ def _replace_traces(
     tiles, set the chosen action's to 1 (deduplicated), keeping the ``capacity`` largest traces."""
     capacity = index.shape[0]
     n = tiles.shape[1]
-    fresh = np.sort(tiles[action])
+    fresh = _sort_tiles(tiles[action])
     if skip_matching or starting:  # no older trace survives: torch's layout exactly
         for c in range(capacity):
             if c < n:
@@ -125,7 +151,7 @@ def _replace_traces(
             clear[k * n : (k + 1) * n] = tiles[i]
             k += 1
     clear[k * n :] = fresh
-    clear = np.sort(clear)
+    clear = _sort_tiles(clear)
     kept = 0
     for c in range(capacity):
         v = value[c] * decay
