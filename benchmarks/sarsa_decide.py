@@ -3,7 +3,8 @@
 ``decide`` of M rows (3v2 keepaway: 13 state variables, 3 actions, 32 tilings, 2^20 weights per table, ten
 tables shared by the rows as ``fields_per_learner`` does), at lambda 0 (the thesis) and 0.9; H^'s
 ``values`` and a ``give`` that credits every row. Each figure is the best of ``--repeats`` blocks of calls
-(the machine is shared: the best block is the least disturbed), one torch and one numba thread::
+in process CPU time (the machine is shared: the best block is the least disturbed, and time spent
+descheduled is not counted), one torch and one numba thread::
 
     python benchmarks/sarsa_decide.py [--rows 1 10 100 1000] [--repeats 5]
 """
@@ -32,10 +33,10 @@ def best_microseconds(call: Callable[[int], object], calls: int, repeats: int) -
         call(i)
     best = float("inf")
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0 = time.process_time()
         for i in range(calls):
             call(i)
-        best = min(best, (time.perf_counter() - t0) / calls)
+        best = min(best, (time.process_time() - t0) / calls)
     return best * 1e6
 
 
