@@ -1,5 +1,5 @@
-"""SMDP Sarsa(lambda) in compiled code (numba): :class:`SarsaLambda`'s decisions and episode ends at a
-few microseconds per row, for the CPU at small batches.
+"""SMDP Sarsa(lambda) in compiled code (numba): :class:`SarsaLambda`'s decisions and episode ends in one
+call each, without torch's per-op overhead (tens of microseconds for a few rows; benchmarks/sarsa_decide.py).
 
 :class:`SarsaLambdaNumba` keeps every piece of state in the torch tensors of :class:`SarsaLambda` (the
 coder's ``weight``, ``last_action``, ``q_last``, ``trace_index``, ``trace_value``), read and written in
@@ -49,7 +49,7 @@ def _select(
     tie: np.ndarray,
     noise: np.ndarray,
     draw: float,
-    epsilon,
+    epsilon: float,
     explore: bool,
 ) -> int:
     """``SarsaLambda.select`` for one row from its three draws."""
@@ -71,6 +71,7 @@ def _select(
 
 @_JIT
 def _distinct(learners: np.ndarray) -> bool:
+    """Whether no learner is named twice."""
     s = np.sort(learners)
     for i in range(1, s.shape[0]):
         if s[i] == s[i - 1]:
