@@ -148,7 +148,7 @@ def test_resume_refuses_changes_that_redefine_the_run(trained, tmp_path):
     assert out.returncode == 2
     assert "domain.features=dt cannot change when resuming" in out.stderr
     allowed = "allowed: agent.iterations, agent.hours, agent.episodes, agent.games, threads, device, "
-    allowed += "domain.kernels, logger.backend"
+    allowed += "domain.kernels, agent.kernels, logger.backend"
     assert allowed in out.stderr
 
 

@@ -10,7 +10,7 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from hfrl_torch.agents.sarsa import SarsaLambda, trace_capacity
+from hfrl_torch.agents.sarsa import SarsaLambda, SarsaLambdaNumba, trace_capacity
 from hfrl_torch.agents.sarsa import sarsa_keepers as make_sarsa_keepers
 from hfrl_torch.common.checkpoint import load_checkpoint
 from hfrl_torch.common.errors import ConfigError
@@ -22,10 +22,14 @@ from hfrl_torch.models.tile_coding import TileCoding, keepaway_tile_widths
 torch.set_num_threads(1)
 
 
-def _tiny_agent(lambda_: float, learners: int = 1, **kwargs) -> SarsaLambda:
+# the torch learner and its compiled twin pass the same hand-computed scripts (float64 weights: exact)
+LEARNERS = pytest.mark.parametrize("learner", [SarsaLambda, SarsaLambdaNumba], ids=["torch", "numba"])
+
+
+def _tiny_agent(lambda_: float, learners: int = 1, learner: type = SarsaLambda, **kwargs) -> SarsaLambda:
     """One variable of width 1, two tilings, two actions: N = 2 active tiles, so alpha / N = 0.25."""
     coder = TileCoding([1.0], num_actions=2, learners=learners, tilings=2, size=2**10, dtype=torch.float64)
-    return SarsaLambda(coder, alpha=0.5, epsilon=0.0, lambda_=lambda_, **kwargs)
+    return learner(coder, alpha=0.5, epsilon=0.0, lambda_=lambda_, **kwargs)
 
 
 def _trace(agent: SarsaLambda, learner: int, tile: int) -> float:
@@ -37,9 +41,10 @@ ONE = torch.tensor([0])
 BOTH = torch.ones(1, 2, dtype=torch.bool)
 
 
+@LEARNERS
 @pytest.mark.parametrize("lambda_", [0.0, 0.5])
-def test_three_routines_on_a_scripted_episode(lambda_):
-    agent = _tiny_agent(lambda_)
+def test_three_routines_on_a_scripted_episode(lambda_, learner):
+    agent = _tiny_agent(lambda_, learner=learner)
     w = agent.coder.weight[0]
     s0, s1 = torch.tensor([[0.25]]), torch.tensor([[1.75]])  # tiles (0, -1) and (1, 1) of the two tilings
     tiles = torch.cat((agent.coder.tiles(s0), agent.coder.tiles(s1)))  # [2 states, 2 actions, 2 tiles]
@@ -86,9 +91,10 @@ def test_three_routines_on_a_scripted_episode(lambda_):
         agent.step(ONE, torch.tensor([1.0]), s0, BOTH)  # no pending action after the end
 
 
+@LEARNERS
 @pytest.mark.parametrize("available", [True, False])
-def test_traces_of_other_available_actions_are_cleared(available):
-    agent = _tiny_agent(lambda_=1.0)
+def test_traces_of_other_available_actions_are_cleared(available, learner):
+    agent = _tiny_agent(lambda_=1.0, learner=learner)
     s0, s1 = torch.tensor([[0.25]]), torch.tensor([[0.75]])  # share the tile of tiling 0 (coordinate 0)
     f_s0, f_s1 = agent.coder.tiles(s0)[0], agent.coder.tiles(s1)[0]
     shared, kept = int(f_s0[1, 0]), int(f_s0[1, 1])
@@ -125,7 +131,8 @@ def test_epsilon_greedy_with_random_ties_and_mask():
     assert set(uniform.tolist()) == {0, 2}
 
 
-def test_learner_batch_equals_separate_learners():
+@LEARNERS
+def test_learner_batch_equals_separate_learners(learner):
     gen = torch.Generator().manual_seed(4)
     widths = keepaway_tile_widths()
     start = torch.rand(2, 2**10, generator=gen, dtype=torch.float64)  # no ties: deterministic choices
@@ -135,7 +142,7 @@ def test_learner_batch_equals_separate_learners():
 
     def agent(learners: int) -> SarsaLambda:
         coder = TileCoding(widths, 3, learners=learners, size=2**10, dtype=torch.float64)
-        return SarsaLambda(coder, epsilon=0.0, lambda_=0.7)
+        return learner(coder, epsilon=0.0, lambda_=0.7)
 
     both = agent(2)
     both.coder.weight.copy_(start)
@@ -369,7 +376,8 @@ def test_make_sarsa_keepers_maps_fields_to_their_learners_tables():
     assert shared.coder.learners == 2 and torch.equal(shared.tables, field // 3)
 
 
-def test_simultaneous_updates_of_one_table_add_up():
+@LEARNERS
+def test_simultaneous_updates_of_one_table_add_up(learner):
     """Two rows that share a weight table and decide in the same call: the table moves by the sum of
     the two updates, each computed from the weights before the call (not one after the other)."""
     widths = keepaway_tile_widths()
@@ -381,7 +389,7 @@ def test_simultaneous_updates_of_one_table_add_up():
     def agent(rows: int) -> SarsaLambda:
         coder = TileCoding(widths, 3, learners=1, size=2**10, dtype=torch.float64)
         coder.weight.copy_(start)
-        return SarsaLambda(coder, epsilon=0.0, tables=torch.zeros(rows, dtype=torch.int64))
+        return learner(coder, epsilon=0.0, tables=torch.zeros(rows, dtype=torch.int64))
 
     both = agent(2)
     both.start_episode(torch.arange(2), obs[0], mask)

@@ -18,6 +18,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from hfrl_torch.agents.cem.cem import NOISE_SCHEDULES
+from hfrl_torch.agents.sarsa.keepers import LEARNER_KERNELS
 from hfrl_torch.agents.sarsa.sarsa import trace_capacity
 from hfrl_torch.common.checkpoint import load_checkpoint
 from hfrl_torch.common.errors import ConfigError
@@ -57,6 +58,7 @@ RESUMABLE = (
     "threads",
     "device",
     "domain.kernels",
+    "agent.kernels",
     "logger.backend",
 )
 GROUPS = ("domain", "agent", "fusion", "human", "trainer", "logger")
@@ -489,6 +491,18 @@ def check_kernels(cfg: DictConfig) -> str:
     return kernels
 
 
+def check_learner_kernels(cfg: DictConfig) -> str:
+    """``agent.kernels`` (the Sarsa learner's path), checked against ``device``."""
+    kernels = require_choice(cfg, "agent.kernels", LEARNER_KERNELS)
+    device = str(OmegaConf.select(cfg, "device", default="cpu"))
+    if kernels == "numba" and device != "cpu":
+        raise ConfigError(
+            f"agent.kernels={kernels!r} runs on the CPU only, not device={device}; "
+            "use agent.kernels=auto or torch"
+        )
+    return kernels
+
+
 def check_sarsa(cfg: DictConfig) -> None:
     """The Sarsa keepers, their budget, logging, and the memory their tables need."""
     learners = require_int(cfg, "agent.learners", 1, 100_000)
@@ -509,6 +523,8 @@ def check_sarsa(cfg: DictConfig) -> None:
     bits = require_int(cfg, "agent.table_bits", 1, int(math.log2(MAX_SIZE)))
     min_trace = require_float(cfg, "agent.min_trace", 1e-12, 1.0)
     share = require_bool(cfg, "agent.share_weights")
+    if "kernels" in cfg.agent:  # a saved run's config that predates the option decides by auto
+        check_learner_kernels(cfg)
     keepers = require_int(cfg, "domain.keepers", 3, 11)
     takers = require_int(cfg, "domain.takers", 2, 11)
     active = tilings * (4 * keepers + 2 * takers - 3)

@@ -155,8 +155,9 @@ def make_tamer(cfg: DictConfig, learners: int, num_features: int) -> TamerAgent:
     return TamerAgent(num_features, learners, h.alpha, make_credit(cfg), h.window, h.renormalise)
 
 
-def keeper_tamer_on(cfg: DictConfig, model: TileCoding, fields: int) -> KeeperTamer:
-    """Keepaway TAMER over ``model`` for ``fields`` fields, with ``human``'s step size, credit and window."""
+def keeper_tamer_on(cfg: DictConfig, model: TileCoding, fields: int, kernels: str = "torch") -> KeeperTamer:
+    """Keepaway TAMER over ``model`` for ``fields`` fields, with ``human``'s step size, credit and window
+    (``kernels``: torch, or numba for H^'s sums and adds compiled)."""
     h = cfg.human
     return KeeperTamer(
         model,
@@ -166,13 +167,15 @@ def keeper_tamer_on(cfg: DictConfig, model: TileCoding, fields: int) -> KeeperTa
         window=h.window,
         history=h.history,
         renormalise=h.renormalise,
+        kernels=kernels,
     )
 
 
 def make_keeper_tamer(
     cfg: DictConfig, agent: SarsaLambda, fields: int, keepers: int
 ) -> tuple[KeeperTamer, torch.Tensor]:
-    """H^ on the Sarsa keepers' own tile coding, and the H^ model of each agent row (team or keeper)."""
+    """H^ on the Sarsa keepers' own tile coding (and their kernels), and the H^ model of each agent row
+    (team or keeper)."""
     per_keeper = cfg.human.model == "keeper"
     coder = agent.coder
     model = TileCoding(
@@ -183,7 +186,7 @@ def make_keeper_tamer(
         size=coder.size,
         device=coder.weight.device,
     )
-    tamer = keeper_tamer_on(cfg, model, fields)
+    tamer = keeper_tamer_on(cfg, model, fields, agent.kernels)
     rows = torch.arange(fields * keepers)
     owners = rows if per_keeper else torch.div(rows, keepers, rounding_mode="floor")
     return tamer, owners
@@ -409,6 +412,7 @@ def make_keepers(cfg: DictConfig, config: KeepawayConfig, device: torch.device) 
         share_weights=a.share_weights,
         seed=int(cfg.seed),
         device=device,
+        kernels=str(a.get("kernels", "auto")),
     )
 
 

@@ -66,6 +66,8 @@ class SarsaLambda:
         "hive mind"), while pending actions and traces stay per learner.
     """
 
+    kernels = "torch"  # the reference path, any device (``SarsaLambdaNumba``: the compiled twin)
+
     def __init__(
         self,
         coder: TileCoding,

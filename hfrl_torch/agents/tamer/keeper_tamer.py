@@ -19,6 +19,7 @@ from tensordict import TensorDictBase
 from hfrl_torch import keys
 from hfrl_torch.feedback.credit import CreditModel, GammaDelay, credit_weights
 from hfrl_torch.models.tile_coding import TileCoding
+from hfrl_torch.models.tile_coding_numba import compiled_add_, compiled_values
 
 _PAST = -1e18
 
@@ -33,6 +34,8 @@ class KeeperTamer:
     :param window: longest delay credited, seconds.
     :param history: decisions per field that can still receive credit.
     :param renormalise: scale each event's credits to sum to 1.
+    :param kernels: ``"torch"`` (the reference, any device) or ``"numba"`` (H^'s sums and per-tile adds
+        compiled, CPU only; the same weights within float32 rounding).
     """
 
     def __init__(
@@ -44,7 +47,12 @@ class KeeperTamer:
         window: float | None = 0.5,
         history: int = 16,
         renormalise: bool = False,
+        kernels: str = "torch",
     ) -> None:
+        if kernels not in ("torch", "numba"):
+            raise ValueError(f"KeeperTamer kernels={kernels!r} is invalid; allowed: torch, numba")
+        if kernels == "numba" and model.weight.device.type != "cpu":
+            raise ValueError(f"KeeperTamer kernels='numba' runs on the CPU only, not {model.weight.device}")
         if not alpha > 0 or history < 1 or fields < 1:
             raise ValueError(
                 f"KeeperTamer needs alpha > 0, history >= 1, fields >= 1; got {alpha}, {history}, {fields}"
@@ -54,6 +62,7 @@ class KeeperTamer:
         self.credit = GammaDelay(2.0, 0.28) if credit is None else credit
         self.window = window
         self.renormalise = renormalise
+        self.kernels = kernels
         n = model.active_tiles
         self.tiles = torch.zeros(fields, history, n, dtype=torch.int64)
         self.owner = torch.zeros(fields, history, dtype=torch.int64)
@@ -65,6 +74,8 @@ class KeeperTamer:
 
     def values(self, owner: torch.Tensor, tiles: torch.Tensor) -> torch.Tensor:
         """H^ of every action ``[B, A]``: ``owner`` [B] (the model), ``tiles`` [B, A, N]."""
+        if self.kernels == "numba":
+            return compiled_values(self.model, owner, tiles)
         return self.model(owner, tiles)
 
     def record(
@@ -115,10 +126,17 @@ class KeeperTamer:
             return 0
         rows, cols = hit.nonzero(as_tuple=True)
         owner, tiles = self.owner[rows, cols], self.tiles[rows, cols]
-        prediction = self.model(owner, tiles).to(torch.float64)
+        compiled = self.kernels == "numba"
+        if compiled:
+            prediction = compiled_values(self.model, owner, tiles.unsqueeze(1)).squeeze(1).to(torch.float64)
+        else:
+            prediction = self.model(owner, tiles).to(torch.float64)
         error = values.to(torch.float64)[rows] - prediction
         step = (self.alpha / self.model.active_tiles) * c[rows, cols] * error
-        self.model.add_(owner, tiles, step.unsqueeze(-1).expand_as(tiles))
+        if compiled:
+            compiled_add_(self.model, owner, tiles, step)
+        else:
+            self.model.add_(owner, tiles, step.unsqueeze(-1).expand_as(tiles))
         self.got_credit[rows, cols] = True
         return int(hit.sum())
 
