@@ -154,6 +154,8 @@ class SarsaKeepers(Learner):
             )
             self.watcher.attach(self.sim)
         self.budget_cycles = round(float(a.hours) * CYCLES_PER_HOUR)
+        # read once: the loop consults them at every step, and each config lookup costs microseconds
+        self.budget_episodes, self.log_episodes = int(a.episodes), int(a.log_episodes)
         self.window = max(1, round(float(a.log_minutes) * CYCLES_PER_MINUTE))
         self.every = max(1, round(float(a.checkpoint_minutes) * CYCLES_PER_MINUTE))
         self.unit = "sim s" if self.budget_cycles > 0 else "episode"  # type: ignore[misc]
@@ -186,9 +188,9 @@ class SarsaKeepers(Learner):
 
     @property
     def done(self) -> bool:
-        rec, a = self.records, self.cfg.agent
+        rec, episodes = self.records, self.budget_episodes
         by_time = self.budget_cycles > 0 and bool((rec.learner_clock >= self.budget_cycles).all())
-        by_episodes = int(a.episodes) > 0 and bool((rec.episodes >= int(a.episodes)).all())
+        by_episodes = episodes > 0 and bool((rec.episodes >= episodes).all())
         return by_time or by_episodes
 
     @property
@@ -396,7 +398,7 @@ class SarsaKeepers(Learner):
     # --------------------------------------------------------------- the curves
 
     def _close_points(self) -> list[Point]:
-        rec, a = self.records, self.cfg.agent
+        rec, every = self.records, self.log_episodes
         points = []
         slowest = int(rec.learner_clock.min())
         while slowest >= (self.time_windows + 1) * self.window:
@@ -417,13 +419,13 @@ class SarsaKeepers(Learner):
                 **stats,
             }
             points.append(Point(record, end // CYCLES_PER_SECOND, prefix="by_hours/"))
-        while int(rec.episodes.min()) >= (self.episode_windows + 1) * a.log_episodes:
-            lo = self.episode_windows * a.log_episodes
-            stats = rec.episode_window(lo, lo + a.log_episodes)
+        while int(rec.episodes.min()) >= (self.episode_windows + 1) * every:
+            lo = self.episode_windows * every
+            stats = rec.episode_window(lo, lo + every)
             stats.update(self.feedback_stats())
             self.episode_windows += 1
-            record = {"axis": "episodes", "episode": lo + a.log_episodes, **stats}
-            points.append(Point(record, lo + a.log_episodes, axis="by_episodes", prefix="by_episodes/"))
+            record = {"axis": "episodes", "episode": lo + every, **stats}
+            points.append(Point(record, lo + every, axis="by_episodes", prefix="by_episodes/"))
         return points
 
     def points_of(self, history: list[dict[str, Any]]) -> list[Point]:
