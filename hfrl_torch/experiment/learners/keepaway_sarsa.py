@@ -2,10 +2,11 @@
 person's feedback too: ``train.py domain=keepaway [fusion=<scheme>]`` (thesis Figure 5.4 and Chapter 5).
 
 ``agent.learners`` independent *learners* (teams of keepers: the seeds of the experiment) each play on
-``agent.fields_per_learner`` fields of one batched ``KeepawayEnv``. On the whole-cycle kernels
-(``domain.kernels=cycle``, the CPU default) it runs ``sync="all"``: each field on its own to its next
-decision in one compiled call, so every step decides on every field at once; otherwise ``sync="any"``: the
-fields in lock-step until any must decide, so none idles. Field f belongs to learner f // fields_per_learner;
+``agent.fields_per_learner`` fields of one batched ``KeepawayEnv``. With one field per learner on the
+whole-cycle kernels (``domain.kernels=cycle``, the CPU default) it runs ``sync="all"``: each field on its own
+to its next decision in one compiled call, so every step decides on every field at once; otherwise
+``sync="any"``: the fields in lock-step until any must decide, so none idles and a learner's fields do not
+all decide from the same weights. Field f belongs to learner f // fields_per_learner;
 keeper k of it reads and updates the weight table (f // fields_per_learner) * keepers + k, and learns from
 its own decisions only, each field giving each keeper its own SMDP transitions (state slot f * keepers + k):
 RLstartEpisode at its first decision, RLstep with reward = cycles since its own last decision, RLendEpisode
@@ -127,10 +128,15 @@ class SarsaKeepers(Learner):
         play = None
         if checkpoint is not None:
             play = self._load(checkpoint["state"])
-        # whole cycles compiled: every field runs on its own to its next decision, so each step decides
-        # on every field at once; elsewhere (and for a person watching every cycle) the fields run in
-        # lock-step until any must decide, so none idles
-        sync = "all" if config.kernels == "cycle" and not self.person else "any"
+        # whole cycles compiled, one field per learner: every field runs on its own to its next decision,
+        # so each step decides on every field at once (fields of different learners share nothing, so this
+        # plays as the lock-step does); with several fields per learner their decisions would all come from
+        # the same weights in every step, so they stay in lock-step until any must decide, as elsewhere
+        sync = (
+            "all"
+            if config.kernels == "cycle" and not self.person and int(a.fields_per_learner) == 1
+            else "any"
+        )
         env = KeepawayEnv(
             fields, config, device=device, seed=int(cfg.seed) + 1_000_003 * self.resumes, sync=sync
         )
