@@ -44,6 +44,19 @@ from hfrl_torch.feedback.log import FeedbackLog
 from hfrl_torch.fusion.transform import FusionModule
 
 CHUNK_PLACEMENTS = 200  # placements on every board per chunk at most (a chunk also ends at a new point)
+# what a decision adds to the step's tensordict (the feedback due, the values fused and chosen by): not the
+# env's, so left out of its step, which would carry each entry into the next step's tensordict and through
+# every partial reset; each decision starts from the observation alone
+DECISION_KEYS = (
+    keys.FEEDBACK,
+    keys.FEEDBACK_TIME,
+    keys.FEEDBACK_MASK,
+    keys.FEEDBACK_SOURCE,
+    keys.ENV_VALUES,
+    keys.HUMAN_VALUES,
+    keys.FUSED_VALUES,
+    keys.FUSION_WEIGHT,
+)
 SAVE_EVERY_S = 10.0  # wall seconds between checkpoints
 
 
@@ -162,8 +175,9 @@ class TetrisGames(Learner):
             if taught:
                 self.feedback(td)
             action = self.act(td, active)
-            if taught:
+            if taught:  # judged; and only a taught learner's decisions write entries
                 self.judge(td, action, active)
+                td = td.exclude(*DECISION_KEYS)
             td.set(keys.ACTION, action)
             td, self.td = self.env.step_and_maybe_reset(td)
             self.observe(td, active)
