@@ -87,14 +87,21 @@ class FeedbackChannel:
         """Queue the events of one step, one list per board (in the order given)."""
         if len(events) != self.boards:
             raise ValueError(f"FeedbackChannel of {self.boards} boards got events for {len(events)}")
-        rounds = max((len(e) for e in events), default=0)
-        for r in range(rounds):
-            row = [evs[r] if r < len(evs) else None for evs in events]
-            self.put(
-                torch.tensor([0.0 if e is None else e.value for e in row], dtype=torch.float64),
-                torch.tensor([0.0 if e is None else e.time for e in row], dtype=torch.float64),
-                torch.tensor([0 if e is None else source_kind(e.source) for e in row], dtype=torch.int64),
-            )
+        # all at once, as one ``put`` per round would: board b's j-th event takes its j-th free slot
+        given = [(b, e) for b, evs in enumerate(events) for e in evs if e.value != 0]
+        if not given:
+            return
+        rows = torch.tensor([b for b, _ in given], dtype=torch.int64)
+        need = torch.bincount(rows, minlength=self.boards)
+        while bool((torch.isinf(self.time).sum(1) < need).any()):
+            self._grow()
+        free = torch.isinf(self.time).to(torch.int8).argsort(dim=1, descending=True, stable=True)
+        nth = torch.arange(len(given)) - (need.cumsum(0) - need)[rows]  # the event's rank on its board
+        slot = free[rows, nth]
+        self.time[rows, slot] = torch.tensor([e.time for _, e in given], dtype=torch.float64)
+        self.value[rows, slot] = torch.tensor([e.value for _, e in given], dtype=torch.float64)
+        self.source[rows, slot] = torch.tensor([source_kind(e.source) for _, e in given], dtype=torch.int64)
+        self._waiting += len(given)
 
     def deliver(self, now: Tensor | float) -> TensorDict:
         """The events due by ``now`` (seconds, one clock per board [B] or one for all), oldest first, at most
