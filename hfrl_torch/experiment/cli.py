@@ -71,7 +71,10 @@ def job_overrides(overrides: list[str], config_name: str, multirun: bool) -> tup
 def job_dir(config_name: str, overrides: list[str], index: int | None) -> Path | None:
     """The directory a job will write to (a single run's ``hydra.run.dir``, a sweep job's
     ``hydra.sweep.dir/<subdir>``); None for ``evaluate.py``, which writes none."""
-    hydra = _compose(config_name, overrides, hydra=True).hydra
+    return _job_dir(_compose(config_name, overrides, hydra=True).hydra, index)
+
+
+def _job_dir(hydra: DictConfig, index: int | None) -> Path | None:
     if hydra.get("output_subdir") is None:
         return None
     if index is None:
@@ -96,6 +99,14 @@ def _compose(config_name: str, overrides: list[str], hydra: bool = False) -> Dic
         return compose(config_name, overrides=task, return_hydra_config=hydra)
 
 
+def _split(config_name: str, overrides: list[str]) -> tuple[DictConfig, DictConfig]:
+    """The job's config and Hydra's, from one composition (composing is most of a check's cost)."""
+    full = _compose(config_name, overrides, hydra=True)
+    cfg = OmegaConf.masked_copy(full, [k for k in full if k != "hydra"])
+    OmegaConf.set_struct(cfg, True)
+    return cfg, full.hydra
+
+
 def precheck(argv: list[str], config_name: str, validate: Callable[[DictConfig], None]) -> None:
     """Check every job of this command line before Hydra runs it (see the module docstring)."""
     try:
@@ -108,14 +119,14 @@ def precheck(argv: list[str], config_name: str, validate: Callable[[DictConfig],
     try:
         jobs, complete = job_overrides(args.overrides, config_name, bool(args.multirun))
         for i, job in enumerate(jobs):
-            cfg = _compose(config_name, job)
+            cfg, hydra = _split(config_name, job)
             resuming = bool(cfg.get("resume"))
             if resuming:
                 checkpoint = load_checkpoint(cfg.resume)
                 cfg = resume_config(cfg, Path(cfg.resume), checkpoint, job)
             try:
                 validate(cfg)
-                check_fresh(job_dir(config_name, job, i if args.multirun else None), resuming)
+                check_fresh(_job_dir(hydra, i if args.multirun else None), resuming)
             except (UserError, ValueError) as exc:
                 where = f"job {i} ({' '.join(job)}): " if len(jobs) > 1 else ""
                 fail(where + str(exc).splitlines()[0])

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
 import torch
 from tensordict import TensorDict
 from torch import Tensor
@@ -39,16 +40,32 @@ class FeedbackChannel:
                 f"got {boards}, {slots}, {capacity}"
             )
         self.boards, self.slots, self.capacity = int(boards), int(slots), int(capacity)
-        self.time = torch.full((boards, capacity), torch.inf, dtype=torch.float64)
-        self.value = torch.zeros(boards, capacity, dtype=torch.float64)
-        self.source = torch.zeros(boards, capacity, dtype=torch.int64)
+        # numpy queues: a step moves a few events, where a torch call costs more than its work
+        self._time = np.full((boards, capacity), np.inf)
+        self._value = np.zeros((boards, capacity))
+        self._source = np.zeros((boards, capacity), dtype=np.int64)
         self._waiting = 0  # events in the queues (a delivery with none due is the common case)
-        self._none = self._delivery(torch.zeros(boards, slots, dtype=torch.bool), None)
+        self._none = self._delivery(np.zeros((boards, slots), dtype=bool), None)
 
     @property
     def pending(self) -> int:
         """Events waiting on every board."""
         return self._waiting
+
+    @property
+    def time(self) -> Tensor:
+        """When each queued event was given ``[B, capacity]`` (inf: a free slot); a view of the queue."""
+        return torch.from_numpy(self._time)
+
+    @property
+    def value(self) -> Tensor:
+        """Each queued event's value ``[B, capacity]`` (0 in free slots); a view of the queue."""
+        return torch.from_numpy(self._value)
+
+    @property
+    def source(self) -> Tensor:
+        """Each queued event's ``SOURCE_KINDS`` code ``[B, capacity]``; a view of the queue."""
+        return torch.from_numpy(self._source)
 
     def put(self, values: Tensor, times: Tensor, source: str | Tensor) -> None:
         """Queue one event per board where ``values`` [B] is nonzero, given at ``times`` [B] seconds.
@@ -59,42 +76,50 @@ class FeedbackChannel:
         values = values.detach().to(device="cpu", dtype=torch.float64).reshape(-1)
         if values.shape[0] != self.boards:
             raise ValueError(f"FeedbackChannel of {self.boards} boards got {values.shape[0]} values")
-        new = values != 0
-        if not bool(new.any()):
+        v = values.numpy()
+        rows = np.flatnonzero(v != 0)
+        if rows.size == 0:
             return
-        times = times.detach().to(device="cpu", dtype=torch.float64).reshape(-1)
+        t = times.detach().to(device="cpu", dtype=torch.float64).reshape(-1).numpy()
         if isinstance(source, str):
-            codes = torch.full((self.boards,), source_kind(source), dtype=torch.int64)
+            codes = np.full(self.boards, source_kind(source), dtype=np.int64)
         else:
-            codes = source.detach().to(device="cpu", dtype=torch.int64).reshape(-1)
-        if bool((new & torch.isfinite(self.time).all(1)).any()):
+            codes = source.detach().to(device="cpu", dtype=torch.int64).reshape(-1).numpy()
+        self._queue(rows, t[rows], v[rows], codes[rows])
+
+    def _queue(self, rows: np.ndarray, times: np.ndarray, values: np.ndarray, codes: np.ndarray) -> None:
+        """Put events into free slots: board b's j-th event (in the order given) in its j-th free slot."""
+        need = np.bincount(rows, minlength=self.boards)
+        while bool((np.isinf(self._time).sum(1) < need).any()):
             self._grow()
-        free = torch.isinf(self.time).to(torch.int8).argmax(1)
-        rows = new.nonzero().squeeze(-1)
-        self.time[rows, free[rows]] = times[rows]
-        self.value[rows, free[rows]] = values[rows]
-        self.source[rows, free[rows]] = codes[rows]
-        self._waiting += int(rows.numel())
+        free = np.argsort(~np.isinf(self._time), axis=1, kind="stable")
+        nth = np.arange(rows.size) - (np.cumsum(need) - need)[rows]  # the event's rank on its board
+        slot = free[rows, nth]
+        self._time[rows, slot] = times
+        self._value[rows, slot] = values
+        self._source[rows, slot] = codes
+        self._waiting += int(rows.size)
 
     def _grow(self) -> None:
         """Double every board's queue (a clock that stalled while events kept coming)."""
-        self.time = torch.cat((self.time, torch.full_like(self.time, torch.inf)), 1)
-        self.value = torch.cat((self.value, torch.zeros_like(self.value)), 1)
-        self.source = torch.cat((self.source, torch.zeros_like(self.source)), 1)
+        self._time = np.concatenate((self._time, np.full_like(self._time, np.inf)), 1)
+        self._value = np.concatenate((self._value, np.zeros_like(self._value)), 1)
+        self._source = np.concatenate((self._source, np.zeros_like(self._source)), 1)
         self.capacity *= 2
 
     def put_events(self, events: list[list[FeedbackEvent]]) -> None:
         """Queue the events of one step, one list per board (in the order given)."""
         if len(events) != self.boards:
             raise ValueError(f"FeedbackChannel of {self.boards} boards got events for {len(events)}")
-        rounds = max((len(e) for e in events), default=0)
-        for r in range(rounds):
-            row = [evs[r] if r < len(evs) else None for evs in events]
-            self.put(
-                torch.tensor([0.0 if e is None else e.value for e in row], dtype=torch.float64),
-                torch.tensor([0.0 if e is None else e.time for e in row], dtype=torch.float64),
-                torch.tensor([0 if e is None else source_kind(e.source) for e in row], dtype=torch.int64),
-            )
+        given = [(b, e) for b, evs in enumerate(events) for e in evs if e.value != 0]
+        if not given:
+            return
+        self._queue(
+            np.array([b for b, _ in given], dtype=np.int64),
+            np.array([e.time for _, e in given], dtype=np.float64),
+            np.array([e.value for _, e in given], dtype=np.float64),
+            np.array([source_kind(e.source) for _, e in given], dtype=np.int64),
+        )
 
     def deliver(self, now: Tensor | float) -> TensorDict:
         """The events due by ``now`` (seconds, one clock per board [B] or one for all), oldest first, at most
@@ -103,35 +128,38 @@ class FeedbackChannel:
         tensordict: read it, do not write into it."""
         if not self._waiting:
             return self._none
-        clock = torch.as_tensor(now, dtype=torch.float64).reshape(-1).expand(self.boards)
-        due = torch.isfinite(self.time) & (self.time <= clock.unsqueeze(1))
-        if not bool(due.any()):
+        if isinstance(now, Tensor):
+            clock = now.detach().to(device="cpu", dtype=torch.float64).reshape(-1, 1).numpy()
+        else:
+            clock = float(now)
+        due = np.isfinite(self._time) & (self._time <= clock)
+        if not due.any():
             return self._none
-        order = torch.where(due, self.time, torch.inf).argsort(dim=1, stable=True)[:, : self.slots]
-        taken = due.gather(1, order)
+        order = np.argsort(np.where(due, self._time, np.inf), axis=1, kind="stable")[:, : self.slots]
+        taken = np.take_along_axis(due, order, 1)
         out = self._delivery(taken, order)
-        rows, cols = taken.nonzero(as_tuple=True)
+        rows, cols = taken.nonzero()
         slot = order[rows, cols]
-        self.time[rows, slot] = torch.inf
-        self.value[rows, slot] = 0.0
-        self.source[rows, slot] = 0
-        self._waiting -= int(rows.numel())
+        self._time[rows, slot] = np.inf
+        self._value[rows, slot] = 0.0
+        self._source[rows, slot] = 0
+        self._waiting -= int(rows.size)
         return out
 
-    def _delivery(self, taken: Tensor, order: Tensor | None) -> TensorDict:
+    def _delivery(self, taken: np.ndarray, order: np.ndarray | None) -> TensorDict:
         if order is None:  # no event: empty slots
-            value, time = torch.zeros(taken.shape, dtype=torch.float64), torch.full(taken.shape, torch.nan)
-            source = torch.zeros(taken.shape, dtype=torch.int64)
+            value, time = np.zeros(taken.shape), np.full(taken.shape, np.nan)
+            source = np.zeros(taken.shape, dtype=np.int64)
         else:
-            value = torch.where(taken, self.value.gather(1, order), 0.0)
-            time = torch.where(taken, self.time.gather(1, order), torch.nan)
-            source = torch.where(taken, self.source.gather(1, order), 0)
+            value = np.where(taken, np.take_along_axis(self._value, order, 1), 0.0)
+            time = np.where(taken, np.take_along_axis(self._time, order, 1), np.nan)
+            source = np.where(taken, np.take_along_axis(self._source, order, 1), 0)
         return TensorDict(
             {
-                keys.FEEDBACK: value,
-                keys.FEEDBACK_TIME: time.to(torch.float64),
-                keys.FEEDBACK_MASK: taken,
-                keys.FEEDBACK_SOURCE: source,
+                keys.FEEDBACK: torch.from_numpy(value),
+                keys.FEEDBACK_TIME: torch.from_numpy(time),
+                keys.FEEDBACK_MASK: torch.from_numpy(taken),
+                keys.FEEDBACK_SOURCE: torch.from_numpy(source),
             },
             batch_size=[self.boards],
         )
@@ -143,9 +171,9 @@ class FeedbackChannel:
     def state_dict(self) -> dict[str, Any]:
         """The waiting events (so a resumed run delivers them as the uninterrupted one would)."""
         return {
-            "time": self.time.clone(),
-            "value": self.value.clone(),
-            "source": self.source.clone(),
+            "time": torch.from_numpy(self._time.copy()),
+            "value": torch.from_numpy(self._value.copy()),
+            "source": torch.from_numpy(self._source.copy()),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -160,6 +188,8 @@ class FeedbackChannel:
             raise CheckpointError(
                 f"bad feedback channel state: queues of shape {tuple(shape)} for {self.boards} boards"
             )
-        self.time, self.value, self.source = time.clone(), value.clone(), source.clone()
+        self._time = time.detach().cpu().numpy().copy()
+        self._value = value.detach().cpu().numpy().copy()
+        self._source = source.detach().cpu().numpy().copy()
         self.capacity = shape[1]
-        self._waiting = int(torch.isfinite(self.time).sum())
+        self._waiting = int(np.isfinite(self._time).sum())

@@ -10,7 +10,7 @@ import math
 import numbers
 import threading
 from collections import deque
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from typing import Any, Literal
 
 import torch
@@ -92,8 +92,22 @@ class FeedbackEvent:
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-able fields, in the order the feedback log writes them."""
-        d = asdict(self)
-        return {k: d[k] for k in EVENT_FIELDS}
+        return {k: getattr(self, k) for k in EVENT_FIELDS}  # all plain values: nothing to copy
+
+    def stamped(self, session: str, seq: int | None = None) -> FeedbackEvent:
+        """This event under ``session`` (and numbered ``seq``, if given): ``dataclasses.replace`` without
+        checking again the fields it keeps (a trainer and the log stamp every event they pass on)."""
+        if not isinstance(session, str):
+            raise ValueError(f"FeedbackEvent.session must be a string, got {session!r}")
+        if seq is not None and not (_is_int(seq) and seq >= -1):
+            raise ValueError(f"FeedbackEvent.seq must be an integer >= 0 (or -1 = unknown), got {seq!r}")
+        out = object.__new__(type(self))
+        fields = out.__dict__
+        fields.update(self.__dict__)
+        fields["session"] = session
+        if seq is not None:
+            fields["seq"] = int(seq)
+        return out
 
 
 class FeedbackQueueFullError(RuntimeError):

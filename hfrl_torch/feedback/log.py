@@ -49,7 +49,7 @@ import time
 import warnings
 from collections import Counter
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, overload
 
@@ -375,6 +375,8 @@ class FeedbackLog:
         ``session`` (this log's if it was ``""``) and ``seq``. After :meth:`rewind`, an event given again
         is returned as logged and not written again."""
         given = list(events)
+        if not given:  # most boards' steps: nothing to write or match
+            return []
         for ev in given:
             if not isinstance(ev, FeedbackEvent):
                 raise TypeError(f"FeedbackLog takes FeedbackEvent objects, got {type(ev).__name__}")
@@ -386,7 +388,7 @@ class FeedbackLog:
             for ev in given:
                 session = ev.session or self.session
                 seq = last.get(session, -1) + 1
-                stamped = replace(ev, session=session, seq=seq)
+                stamped = ev.stamped(session, seq)
                 pending = self._pending.get(session)
                 if pending is not None:
                     logged = pending.pop(seq, None)
@@ -400,7 +402,7 @@ class FeedbackLog:
                     if logged is not None:
                         self._diverged(session, seq, len(pending) + 1, written.get(session, -1))
                         seq = written.get(session, -1) + 1
-                        stamped = replace(stamped, seq=seq)
+                        stamped = stamped.stamped(session, seq)
                     if not pending or logged is not None:
                         del self._pending[session]
                 lines.append(_line(stamped.to_dict()))

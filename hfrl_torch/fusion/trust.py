@@ -150,11 +150,10 @@ class MatchCounter:
         """Count the decisions of rows ``[M, A]`` (``choosable`` bool ``[M, A]``) made by ``learner`` [M]."""
         h = human_values.detach().to(device="cpu", dtype=torch.float64)
         r = env_values.detach().to(device="cpu", dtype=torch.float64)
-        keep = choosable.detach().cpu().to(torch.bool)
-        hi = h.masked_fill(~keep, -torch.inf).amax(-1)
-        lo = h.masked_fill(~keep, torch.inf).amin(-1)
-        prefers = hi > lo
-        same = h.masked_fill(~keep, -torch.inf).argmax(-1) == r.masked_fill(~keep, -torch.inf).argmax(-1)
+        out = ~choosable.detach().cpu().to(torch.bool)
+        best = h.masked_fill(out, -torch.inf)
+        prefers = best.amax(-1) > h.masked_fill(out, torch.inf).amin(-1)
+        same = best.argmax(-1) == r.masked_fill(out, -torch.inf).argmax(-1)
         self.add(learner, (prefers & same).to(torch.int64), prefers.to(torch.int64))
 
     def add(self, learner: Tensor, matches: Tensor, compared: Tensor) -> None:

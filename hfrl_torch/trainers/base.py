@@ -131,7 +131,7 @@ class Trainer(ABC):
         out: Events = []
         for b, evs in enumerate(events):
             label = board_session(self.log.session, b, len(events))
-            stamped = [e if e.session else FeedbackEvent(**{**e.to_dict(), "session": label}) for e in evs]
+            stamped = [e if e.session else e.stamped(label) for e in evs]
             out.append(self.log.extend(stamped))
         return out
 

@@ -44,6 +44,19 @@ from hfrl_torch.feedback.log import FeedbackLog
 from hfrl_torch.fusion.transform import FusionModule
 
 CHUNK_PLACEMENTS = 200  # placements on every board per chunk at most (a chunk also ends at a new point)
+# what a decision adds to the step's tensordict (the feedback due, the values fused and chosen by): not the
+# env's, so left out of its step, which would carry each entry into the next step's tensordict and through
+# every partial reset; each decision starts from the observation alone
+DECISION_KEYS = (
+    keys.FEEDBACK,
+    keys.FEEDBACK_TIME,
+    keys.FEEDBACK_MASK,
+    keys.FEEDBACK_SOURCE,
+    keys.ENV_VALUES,
+    keys.HUMAN_VALUES,
+    keys.FUSED_VALUES,
+    keys.FUSION_WEIGHT,
+)
 SAVE_EVERY_S = 10.0  # wall seconds between checkpoints
 
 
@@ -70,6 +83,7 @@ class TetrisGames(Learner):
         self.watched = torch.zeros(L, G, dtype=torch.int64)  # placements of each game the trainer watched
         self.placement = 0
         self.closed = 0
+        self.rows = torch.arange(L)  # every learner's row, for indexing per-learner tables
         self.log: FeedbackLog | None = None
         if self.taught and cfg.trainer.name != "none":
             h = cfg.human
@@ -154,29 +168,34 @@ class TetrisGames(Learner):
             )
 
     def advance(self) -> list[Point]:
-        for _ in range(CHUNK_PLACEMENTS):
-            if self.done:
-                break
-            active = self.played < self.games
+        taught = self.trainer is not None
+        active = self.played < self.games
+        for _ in range(0 if self.done else CHUNK_PLACEMENTS):
             td = self.td
-            if self.trainer is not None:
+            if taught:
                 self.feedback(td)
             action = self.act(td, active)
-            if self.trainer is not None:
+            if taught:  # judged; and only a taught learner's decisions write entries
                 self.judge(td, action, active)
-            td[keys.ACTION] = action
+                td = td.exclude(*DECISION_KEYS)
+            td.set(keys.ACTION, action)
             td, self.td = self.env.step_and_maybe_reset(td)
             self.observe(td, active)
-            self._book(td["next"], active)
+            ended = self._book(td.get("next"), active)
             self.placement += 1
-            if int(self.played.min()) > self.closed:  # a game number every learner has played: a point
-                break
+            if ended:  # only then can a point close or the budget be spent
+                if self.done or int(self.played.min()) > self.closed:  # a game every learner has played
+                    break
+                active = self.played < self.games
         return self._close_points()
 
     def feedback(self, td: TensorDictBase) -> None:
-        """Before a choice: the channel's due events into ``td``, and H^ learns from them."""
-        td.update(self.channel.deliver(self.clock))
-        self.human.learn(td)
+        """Before a choice: the channel's due events into ``td``, and H^ learns from them (with none due
+        there is nothing to write or learn)."""
+        delivery = self.channel.deliver(self.clock)
+        if bool(delivery.get(keys.FEEDBACK_MASK).any()):
+            td.update(delivery)
+            self.human.learn(td)
 
     def judge(self, td: TensorDictBase, action: torch.Tensor, active: torch.Tensor) -> None:
         """After a choice: the trainer judges each active board's placement; H^ remembers it for credit."""
@@ -184,23 +203,25 @@ class TetrisGames(Learner):
         active = active & self.departure.present(self.played, now)
         events = self.trainer.give(td, action, now, self.played, active)
         self.human.record(td, action, now, active)
-        self.channel.put_events(events)
         g = self.played.clamp(max=self.games - 1)
-        rows = torch.arange(self.learners)
-        count = torch.tensor(
-            [[len(e), sum(x.value > 0 for x in e), sum(x.value < 0 for x in e)] for e in events]
-        )
-        self.given[rows, g] += torch.where(active.unsqueeze(-1), count, 0)
+        rows = self.rows
+        if any(events):
+            self.channel.put_events(events)
+            count = torch.tensor(
+                [[len(e), sum(x.value > 0 for x in e), sum(x.value < 0 for x in e)] for e in events]
+            )
+            self.given[rows, g] += torch.where(active.unsqueeze(-1), count, 0)
         self.watched[rows, g] += active.to(torch.int64)
 
     def human_values(self, td: TensorDictBase) -> torch.Tensor:
         """H^ of every placement [L, A]: w . (f(s') - f(s))."""
         return self.human.model(placement_deltas(td))
 
-    def _book(self, nxt: TensorDictBase, active: torch.Tensor) -> None:
-        done = nxt[keys.DONE].view(-1) & active
+    def _book(self, nxt: TensorDictBase, active: torch.Tensor) -> bool:
+        """Book the games that ended on this step; returns whether any did."""
+        done = nxt.get(keys.DONE).view(-1) & active
         if not bool(done.any()):
-            return
+            return False
         rows = done.nonzero().flatten()
         idx = self.played[rows]
         self.lines[rows, idx] = nxt[keys.LINES].view(-1)[rows]
@@ -209,6 +230,7 @@ class TetrisGames(Learner):
         if self.trainer is not None:
             self.trainer.end_games(done, nxt[keys.LINES].view(-1))
         self.played += done.to(torch.int64)
+        return True
 
     def game_ended(self, done: torch.Tensor, nxt: TensorDictBase) -> None:
         """The games of the boards flagged in ``done`` ended (``nxt``: their last step's output)."""

@@ -70,7 +70,7 @@ class PolicyGradientLearner(TetrisGames):
             td.set(keys.HUMAN_VALUES, self.human_values(td))
             self.fuse(td)
             values = td.get(keys.FUSED_VALUES)
-            rows = torch.arange(self.learners)
+            rows = self.rows
             g = self.played.clamp(max=self.games - 1)
             self.used_weight[rows, g] = torch.where(
                 active, td.get(keys.FUSION_WEIGHT), self.used_weight[rows, g]
@@ -85,7 +85,7 @@ class PolicyGradientLearner(TetrisGames):
         if self.trainer is not None:
             rows = done.nonzero().flatten()
             self.match_rate[rows, self.played[rows]] = self.fusion.matches.rates()[rows]
-            taught = self.given[torch.arange(self.learners), self.played.clamp(max=self.games - 1), 0] > 0
+            taught = self.given[self.rows, self.played.clamp(max=self.games - 1), 0] > 0
             self.fusion.end_episode(done, game_lines.to(torch.float64), taught)
 
     def game_metrics(self, g: int) -> dict[str, float]:

@@ -45,11 +45,12 @@ class QLearningLearner(TetrisGames):
         )
         self.td_error = torch.zeros(int(a.learners), int(a.games), dtype=torch.float64)
         self.abs_delta = torch.zeros(int(a.learners), dtype=torch.float64)  # summed over the current game
+        # read once: a config lookup costs more than the schedule, and this one is made every placement
+        self.exploration = (float(a.epsilon), float(a.epsilon_decay), float(a.epsilon_min))
         super().__init__(cfg, run_dir, checkpoint)
 
     def epsilon(self, games: torch.Tensor) -> torch.Tensor:
-        a = self.cfg.agent
-        return epsilon_schedule(a.epsilon, a.epsilon_decay, a.epsilon_min, games)
+        return epsilon_schedule(*self.exploration, games)
 
     def act(self, td: TensorDictBase, active: torch.Tensor) -> torch.Tensor:
         feats = td[keys.AFTERSTATE_FEATURES]
@@ -59,7 +60,7 @@ class QLearningLearner(TetrisGames):
 
     def observe(self, td: TensorDictBase, active: torch.Tensor) -> None:
         nxt = td["next"]
-        chosen = td[keys.AFTERSTATE_FEATURES][torch.arange(self.learners), td[keys.ACTION]]
+        chosen = td.get(keys.AFTERSTATE_FEATURES)[self.rows, td.get(keys.ACTION)]
         delta = self.agent_q.td_update(
             chosen,
             nxt[keys.REWARD].view(-1),
