@@ -640,7 +640,8 @@ class SarsaKeepers(Learner):
         return final.get("episode_s_mean")
 
     def hparam_metrics(self, final: dict[str, Any]) -> dict[str, float]:
-        return {"hparam/episode_s_last": final["episode_s_mean"]}
+        # (none for a run too short for any episode to end)
+        return {"hparam/episode_s_last": final["episode_s_mean"]} if "episode_s_mean" in final else {}
 
     @property
     def stop_requested(self) -> bool:
