@@ -88,17 +88,23 @@ def tile_indices(
     return out
 
 
+@_INLINE
+def tile_sum(w: np.ndarray, tiles: np.ndarray) -> float:
+    """``sum_n w[tiles[n]]`` of one table ``w`` over one action's ``tiles`` [N] (float64 accumulation)."""
+    s = 0.0
+    for i in range(tiles.shape[0]):
+        s += w[tiles[i]]
+    return s
+
+
 @_JIT
 def table_sums(weight: np.ndarray, tables: np.ndarray, tiles: np.ndarray, out: np.ndarray) -> None:
     """``out[m, k] = sum_n weight[tables[m], tiles[m, k, n]]`` (float64 accumulation, one rounding)."""
-    m, k, n = tiles.shape
+    m, k, _ = tiles.shape
     for r in range(m):
         w = weight[tables[r]]
         for c in range(k):
-            s = 0.0
-            for i in range(n):
-                s += w[tiles[r, c, i]]
-            out[r, c] = s
+            out[r, c] = tile_sum(w, tiles[r, c])
 
 
 @_JIT

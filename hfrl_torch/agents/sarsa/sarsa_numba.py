@@ -24,7 +24,7 @@ import torch
 
 from hfrl_torch.agents.sarsa.sarsa import SarsaLambda
 from hfrl_torch.models.tile_coding import TileCoding
-from hfrl_torch.models.tile_coding_numba import table_sums, tile_indices
+from hfrl_torch.models.tile_coding_numba import table_sums, tile_indices, tile_sum
 
 _JIT = numba.njit(cache=True, nogil=True)
 
@@ -236,11 +236,7 @@ def _decide(
         if starting:
             q_last[lr] = q[r, act]  # line 3
         else:
-            w = weight[tables[lr]]
-            s = 0.0
-            for i in range(tiles.shape[2]):
-                s += w[tiles[r, act, i]]
-            q_last[lr] = s  # line 18
+            q_last[lr] = tile_sum(weight[tables[lr]], tiles[r, act])  # line 18
         _replace_traces(
             trace_index[lr], trace_value[lr], tiles[r], mask[r], act, starting, params, skip_matching
         )
