@@ -328,7 +328,8 @@ def learn(
             if final:
                 final["wall_s"] = time.perf_counter() - start_wall
             if learner.position > start_position:
-                metrics = learner.hparam_metrics(final)
+                # (a run too short for its first result, e.g. no keepaway episode ended, has none)
+                metrics = learner.hparam_metrics(final) if final else {}
                 if metrics:
                     main.hparams(flatten_config(files.cfg), metrics)
                 for cb in callbacks:

@@ -640,8 +640,7 @@ class SarsaKeepers(Learner):
         return final.get("episode_s_mean")
 
     def hparam_metrics(self, final: dict[str, Any]) -> dict[str, float]:
-        # (none for a run too short for any episode to end)
-        return {"hparam/episode_s_last": final["episode_s_mean"]} if "episode_s_mean" in final else {}
+        return {"hparam/episode_s_last": final["episode_s_mean"]}
 
     @property
     def stop_requested(self) -> bool:
