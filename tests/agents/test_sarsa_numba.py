@@ -5,6 +5,7 @@ rounding, full trace slots, and the choice of path with its errors."""
 
 from __future__ import annotations
 
+import numba
 import pytest
 import torch
 from omegaconf import OmegaConf
@@ -15,9 +16,10 @@ from hfrl_torch.agents.sarsa import (
     resolve_learner_kernels,
     sarsa_keepers,
 )
-from hfrl_torch.agents.sarsa.sarsa_numba import _sort_tiles
+from hfrl_torch.agents.sarsa.sarsa_numba import MIN_ROWS_PER_THREAD, _sort_tiles
 from hfrl_torch.agents.tamer.keeper_tamer import KeeperTamer
 from hfrl_torch.common.errors import ConfigError
+from hfrl_torch.common.threads import thread_count
 from hfrl_torch.envs.keepaway import KeepawayConfig
 from hfrl_torch.experiment.config import check_learner_kernels
 from hfrl_torch.experiment.factories import make_keepers
@@ -228,3 +230,50 @@ def test_make_keepers_follows_agent_kernels(compose_train):
             "domain=keepaway", "agent=sarsa", "agent.table_bits=8", f"agent.kernels={kernels}"
         )
         assert type(make_keepers(cfg, KeepawayConfig(), torch.device("cpu"))) is cls
+
+
+@pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason="needs two numba threads")
+@pytest.mark.parametrize("lambda_", [0.0, 0.9])
+@pytest.mark.parametrize("fused", [False, True])
+def test_two_threads_decide_as_one_bit_for_bit(lambda_, fused):
+    """Above MIN_ROWS_PER_THREAD rows a second thread splits the decision into phases (updates split by
+    weight table); rows on shared tables, starting, continuing and ending: the same actions and state."""
+
+    def one() -> SarsaLambdaNumba:
+        coder = TileCoding(WIDTHS, 3, learners=5, size=2**12)
+        tables = torch.arange(200) % 5  # 40 rows on each table
+        return SarsaLambdaNumba(coder, alpha=0.125, epsilon=0.2, lambda_=lambda_, seed=3, tables=tables)
+
+    agents = {threads: one() for threads in (1, 2)}
+    gen = torch.Generator().manual_seed(9)
+    rows = torch.randperm(200, generator=gen)[:150]
+    steps = [
+        (torch.rand(150, 13, generator=gen) * 20, torch.rand(150, 3, generator=gen) * 5) for _ in range(4)
+    ]
+    mask = torch.ones(150, 3, dtype=torch.bool)
+    mask[::7, 2] = False
+    for threads, agent in agents.items():
+        numba.set_num_threads(threads)
+        for i, (obs, reward) in enumerate(steps):
+            values = choose = None
+            if fused:
+                values = agent.action_values(rows, obs)
+                choose = values[1].double() + reward
+            agent.decide(rows, obs, mask, reward[:, 0], values=values, choose_by=choose)
+            if i == 2:
+                agent.end_episode(rows[:50], reward[:50, 1])
+    numba.set_num_threads(1)
+    one_thread, two_threads = agents[1], agents[2]
+    assert thread_count(150, MIN_ROWS_PER_THREAD) == 1  # (back to one thread)
+    for name in ("last_action", "q_last", "trace_index", "trace_value"):
+        assert torch.equal(getattr(one_thread, name), getattr(two_threads, name)), name
+    assert torch.equal(one_thread.coder.weight, two_threads.coder.weight)
+    assert torch.equal(one_thread.chosen_tiles, two_threads.chosen_tiles)
+    with pytest.raises(ValueError, match="distinct learners"):
+        numba.set_num_threads(2)
+        try:
+            two_threads.decide(
+                torch.zeros(100, dtype=torch.int64), steps[0][0][:100], mask[:100], steps[0][1][:100, 0]
+            )
+        finally:
+            numba.set_num_threads(1)

@@ -3,6 +3,8 @@ random stream) against the torch path's ``fresh_state``, and the compiled env st
 
 from __future__ import annotations
 
+import numba
+import pytest
 import torch
 
 from hfrl_torch import keys
@@ -113,3 +115,29 @@ def test_cycle_outcomes_keep_their_episode_lengths_across_the_reset() -> None:
     assert len(lengths) >= 3 and min(lengths) > 0
     result = play_benchmark_policy("hold", 6, batch=3, progress=False, kernels="cycle", **SERVER)
     assert result["median_s"] > 0.5
+
+
+@pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason="needs two numba threads")
+@pytest.mark.parametrize("sync", ["any", "all"])
+def test_two_threads_step_the_env_as_one(sync: str) -> None:
+    """With two threads the whole-cycle env splits its fields (``sync="any"``: each lock-step cycle;
+    ``"all"``: each field's run to its decision) and plays bit for bit as on one."""
+    runs = {}
+    threads_before = numba.get_num_threads()
+    try:
+        for threads in (1, 2):
+            numba.set_num_threads(threads)
+            env = KeepawayEnv(256, KeepawayConfig(kernels="cycle", **SERVER), seed=5, sync=sync)
+            gen = torch.Generator().manual_seed(1)
+            td = env.reset()
+            outs = []
+            for _ in range(120 if sync == "any" else 25):
+                td[keys.ACTION] = torch.randint(0, 3, (256,), generator=gen)
+                stepped, td = env.step_and_maybe_reset(td)
+                outs.append(stepped["next"].clone())
+            runs[threads] = (torch.stack(outs), env.sim.state.pos.clone())
+    finally:
+        numba.set_num_threads(threads_before)
+    (one, pos_one), (two, pos_two) = runs[1], runs[2]
+    assert bool((one[keys.DONE]).any())  # episodes ended and restarted on the way
+    assert (one == two).all() and torch.equal(pos_one, pos_two)

@@ -23,13 +23,15 @@ import numpy as np
 import torch
 
 from hfrl_torch.agents.sarsa.sarsa import SarsaLambda
+from hfrl_torch.common.threads import run_parts, thread_count
 from hfrl_torch.models.tile_coding import TileCoding
-from hfrl_torch.models.tile_coding_numba import table_sums, tile_indices, tile_sum
+from hfrl_torch.models.tile_coding_numba import table_sums, tile_indices, tile_row, tile_sum
 
 _JIT = numba.njit(cache=True, nogil=True)
 
 # entries of the ``params`` array (in the weights' dtype, so the kernel computes in it as torch does)
 STEP, GAMMA, DECAY, MIN_TRACE, EPSILON = range(5)
+MIN_ROWS_PER_THREAD = 32  # decisions a second thread needs to gain (at about 20 us a row, memory-bound)
 
 
 @_JIT
@@ -320,6 +322,128 @@ def decide_states(
     )  # fmt: skip
 
 
+# The same decision in phases over row ranges, for a second thread (``SarsaLambdaNumba`` uses them
+# when ``numba.get_num_threads()`` > 1 and there are enough rows): reads, then the traced updates split by
+# weight table (each table's adds in row order, as above), then the new Q_LastAction and traces. The
+# result is :func:`_decide`'s, bit for bit.
+
+
+@_JIT
+def states_phase(
+    weight: np.ndarray,
+    widths: np.ndarray,
+    shape: np.ndarray,
+    tables: np.ndarray,
+    learners: np.ndarray,
+    obs: np.ndarray,
+    tiles: np.ndarray,
+    q: np.ndarray,
+    lo: int,
+    hi: int,
+) -> None:
+    """Tiles [M, A, N] and Q [M, A] (the weights' dtype, from float64 sums) of rows ``lo .. hi - 1``."""
+    for r in range(lo, hi):
+        tile_row(obs[r], widths, shape[0], shape[1], shape[2], tiles[r])
+        w = weight[tables[learners[r]]]
+        for c in range(tiles.shape[1]):
+            q[r, c] = tile_sum(w, tiles[r, c])
+
+
+@_JIT
+def choose_phase(
+    learners: np.ndarray,
+    q: np.ndarray,
+    choose: np.ndarray,
+    mask: np.ndarray,
+    reward: np.ndarray,
+    tie: np.ndarray,
+    noise: np.ndarray,
+    draw: np.ndarray,
+    params: np.ndarray,
+    explore: bool,
+    last_action: np.ndarray,
+    q_last: np.ndarray,
+    action: np.ndarray,
+    delta: np.ndarray,
+    lo: int,
+    hi: int,
+) -> None:
+    """The action and TD error of rows ``lo .. hi - 1`` (:func:`_decide`'s first loop)."""
+    gamma = params[GAMMA]
+    for r in range(lo, hi):
+        lr = learners[r]
+        act = _select(choose[r], mask[r], tie[r], noise[r], draw[r], params[EPSILON], explore)
+        action[r] = act
+        delta[r] = 0
+        if last_action[lr] >= 0:
+            delta[r] = reward[r] - q_last[lr] + gamma * q[r, act]
+
+
+@_JIT
+def update_phase(
+    weight: np.ndarray,
+    tables: np.ndarray,
+    learners: np.ndarray,
+    params: np.ndarray,
+    last_action: np.ndarray,
+    trace_index: np.ndarray,
+    trace_value: np.ndarray,
+    delta: np.ndarray,
+    parts: int,
+    lo: int,
+    hi: int,
+) -> None:
+    """The traced updates of the rows whose weight table is ``part`` modulo ``parts``, for ``part`` in
+    ``lo .. hi - 1``, in row order."""
+    step = params[STEP]
+    for r in range(learners.shape[0]):
+        lr = learners[r]
+        if last_action[lr] >= 0 and lo <= tables[lr] % parts < hi:
+            _add_traced(weight[tables[lr]], trace_index[lr], trace_value[lr], step * delta[r])
+
+
+@_JIT
+def finish_phase(
+    weight: np.ndarray,
+    tables: np.ndarray,
+    learners: np.ndarray,
+    tiles: np.ndarray,
+    q: np.ndarray,
+    mask: np.ndarray,
+    params: np.ndarray,
+    skip_matching: bool,
+    last_action: np.ndarray,
+    q_last: np.ndarray,
+    trace_index: np.ndarray,
+    trace_value: np.ndarray,
+    action: np.ndarray,
+    chosen: np.ndarray,
+    lo: int,
+    hi: int,
+) -> None:
+    """Q_LastAction, the traces and the pending action of rows ``lo .. hi - 1`` (:func:`_decide`'s
+    last loop)."""
+    for r in range(lo, hi):
+        lr = learners[r]
+        act = action[r]
+        chosen[r] = tiles[r, act]
+        starting = last_action[lr] < 0
+        if starting:
+            q_last[lr] = q[r, act]
+        else:
+            q_last[lr] = tile_sum(weight[tables[lr]], tiles[r, act])
+        _replace_traces(
+            trace_index[lr], trace_value[lr], tiles[r], mask[r], act, starting, params, skip_matching
+        )
+        last_action[lr] = act
+
+
+@_JIT
+def distinct(learners: np.ndarray) -> bool:
+    """Whether no learner is named twice."""
+    return _distinct(learners)
+
+
 @_JIT
 def end_rows(
     weight: np.ndarray,
@@ -430,6 +554,38 @@ class SarsaLambdaNumba(SarsaLambda):
         rows, dtype = _np(learners, torch.int64), coder.weight.dtype
         common = (_np(mask, torch.bool), _np(reward, dtype), tie, noise, draw, self._params, explore)
         state = (self._skip_matching, last_action, q_last, trace_index, trace_value, action, chosen)
+        threads = thread_count(m, MIN_ROWS_PER_THREAD)
+        if threads > 1:
+            if not distinct(rows):
+                raise ValueError("decide: rows must name distinct learners")
+            if values is None:
+                tiles_np = np.empty((m, a, coder.active_tiles), dtype=np.int64)
+                q_np = np.empty((m, a), dtype=weight.dtype)
+                run_parts(
+                    states_phase,
+                    threads,
+                    m,
+                    weight,
+                    widths,
+                    self._shape,
+                    tables,
+                    rows,
+                    _np(obs),
+                    tiles_np,
+                    q_np,
+                )
+            else:
+                tiles_np, q_np = _np(values[0], torch.int64), _np(values[1], dtype)
+            choose = q_np if choose_by is None else _np(choose_by)
+            delta = np.empty(m, dtype=weight.dtype)
+            run_parts(choose_phase, threads, m, rows, q_np, choose, *common[:-2], self._params, explore,
+                      last_action, q_last, action, delta)  # fmt: skip
+            run_parts(update_phase, threads, threads, weight, tables, rows, self._params, last_action,
+                      trace_index, trace_value, delta, threads)  # fmt: skip
+            run_parts(finish_phase, threads, m, weight, tables, rows, tiles_np, q_np, common[0], self._params,
+                      *state)  # fmt: skip
+            self.chosen_tiles = torch.from_numpy(chosen)
+            return torch.from_numpy(action)
         if values is None and choose_by is None:
             ok = decide_states(weight, widths, self._shape, tables, rows, _np(obs), *common, *state)
         else:

@@ -4,16 +4,14 @@ views the kernels update in place (``kernels="cycle"``)."""
 
 from __future__ import annotations
 
-import itertools
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 import torch
 from torch import Tensor
 
+from hfrl_torch.common.threads import run_split, thread_count
 from hfrl_torch.envs.keepaway import cycle_numba as K
 from hfrl_torch.envs.keepaway.params import KeepawayConfig
 from hfrl_torch.envs.keepaway.skills import _reach_table, get_open_grid
@@ -21,23 +19,11 @@ from hfrl_torch.envs.keepaway.skills import _reach_table, get_open_grid
 POLICY_CODES = {"hold": 0, "random": 1, "hand": 2}
 MIN_FIELDS_PER_THREAD = 64  # below this a second thread costs more than it saves
 
-_POOL: ThreadPoolExecutor | None = None
-
 
 def _split(kernel: Callable[..., object], batch: int, *args: object) -> list[object]:
     """Run ``kernel(*args, lo, hi)`` over field ranges, one per thread (``numba.get_num_threads()``,
     which ``threads=`` sets), and return the results; the kernels release the GIL."""
-    global _POOL
-    if batch < 2 * MIN_FIELDS_PER_THREAD:
-        return [kernel(*args, 0, batch)]
-    threads = max(1, min(numba.get_num_threads(), batch // MIN_FIELDS_PER_THREAD))
-    if threads == 1:
-        return [kernel(*args, 0, batch)]
-    if _POOL is None or _POOL._max_workers < threads:
-        _POOL = ThreadPoolExecutor(max_workers=threads)
-    edges = [batch * t // threads for t in range(threads + 1)]
-    futures = [_POOL.submit(kernel, *args, lo, hi) for lo, hi in itertools.pairwise(edges)]
-    return [f.result() for f in futures]
+    return run_split(kernel, batch, *args, min_rows_per_thread=MIN_FIELDS_PER_THREAD)
 
 
 _STATE_ORDER = (
@@ -261,10 +247,47 @@ class CompiledCycle:
         tail = (self.prm, self.ip, self.tabs, self.grid, cycles, cause)
         if sync == "all":
             ok = sum(_split(K.advance_fields, self.batch, *common, restart, max_cycles, *tail)) == 0
+        elif thread_count(self.batch, MIN_FIELDS_PER_THREAD) > 1:
+            ok = self._advance_any_split(common, max_cycles, tail)
         else:
             ok = K.advance_any(*common, max_cycles, *tail)
         if not ok:
             raise RuntimeError("keepaway: no decision within max_cycles_per_step cycles")
+
+    def _advance_any_split(self, common: tuple, max_cycles: int, tail: tuple) -> bool:
+        """``cycle_numba.advance_any``'s lock-step loop with each cycle's fields split over threads: the
+        same cycles, bit for bit (each field draws from its own stream)."""
+        pos, ep, prev_holder, pass_target, action_start, clock, phase, spos = (
+            common[k] for k in (0, 4, 6, 7, 8, 9, 10, 11)
+        )
+        actions, first, running = common[15:]
+        prm, ip, tabs, grid, cycles_out, cause_out = tail
+        batch = self.batch
+        alive, go = running.copy(), first.copy()
+        step_cause = np.zeros(batch, dtype=np.int64)
+        must = np.zeros(batch, dtype=np.bool_)
+        cycles_out[:] = 0
+        cause_out[:] = 0
+        if not alive.any():
+            return True
+        check = not first.any()
+        decision = (pos, clock, phase, spos, pass_target, prev_holder, ep, action_start, prm, ip)
+        _split(K.any_musts, batch, *decision, alive, must)
+        for _ in range(max_cycles + 1):
+            if check and (alive & must).any():
+                return True
+            _split(
+                K.any_cycle, batch, *common[:15], actions, go, alive, prm, ip, tabs, grid, step_cause, must
+            )
+            cycles_out += alive
+            ended = alive & (step_cause != 0)
+            cause_out[ended] = step_cause[ended]
+            alive &= ~ended
+            go[:] = False
+            check = True
+            if ended.any() or not alive.any():
+                return True
+        return False
 
     def env_step(
         self,

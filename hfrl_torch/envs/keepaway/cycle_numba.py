@@ -1365,7 +1365,33 @@ def advance_fields(
 
 
 @numba.njit(cache=True, nogil=True)
-def _any_cycle(
+def any_musts(
+    pos: np.ndarray,
+    clock: np.ndarray,
+    phase: np.ndarray,
+    spos: np.ndarray,
+    pass_target: np.ndarray,
+    prev_holder: np.ndarray,
+    ep: np.ndarray,
+    action_start: np.ndarray,
+    prm: np.ndarray,
+    ip: np.ndarray,
+    alive: np.ndarray,
+    must_out: np.ndarray,
+    lo: int,
+    hi: int,
+) -> None:
+    """Whether the holder of each ``alive`` field of ``lo .. hi - 1`` must decide now (False elsewhere)."""
+    for b in range(lo, hi):
+        must_out[b] = False
+        if alive[b]:
+            _, _, must_out[b] = _decision(
+                b, pos, clock, phase, spos, pass_target, prev_holder, ep, action_start, prm, ip
+            )
+
+
+@numba.njit(cache=True, nogil=True)
+def any_cycle(
     pos: np.ndarray,
     vel: np.ndarray,
     body: np.ndarray,
@@ -1390,11 +1416,15 @@ def _any_cycle(
     grid: np.ndarray,
     cause_out: np.ndarray,
     must_out: np.ndarray,
+    lo: int,
+    hi: int,
 ) -> None:
+    """One ``sync="any"`` cycle of the ``running`` fields of ``lo .. hi - 1`` (``actions`` where ``go``):
+    each one's end cause and, where it runs on, whether its holder must decide."""
     count = uniform_count(ip)
     scr = scratch(ip, grid)
     u = np.empty(count)
-    for b in range(pos.shape[0]):
+    for b in range(lo, hi):
         must_out[b] = False
         if not running[b]:
             continue
@@ -1459,7 +1489,8 @@ def advance_any(
     cause_out: np.ndarray,
 ) -> bool:
     """``sync="any"``: the ``running`` fields in lock-step (a first cycle with ``actions`` where
-    ``first``) until one of them must decide or ends. Returns False if ``max_cycles`` ran out."""
+    ``first``) until one of them must decide or ends. Returns False if ``max_cycles`` ran out.
+    (compiled_cycle.py runs the same loop with each cycle's fields split over threads.)"""
     batch = pos.shape[0]
     alive = running.copy()
     go = first.copy()
@@ -1471,11 +1502,9 @@ def advance_any(
     if not alive.any():
         return True
     check = not first.any()
-    for b in range(batch):
-        if alive[b]:
-            _, _, must[b] = _decision(
-                b, pos, clock, phase, spos, pass_target, prev_holder, ep, action_start, prm, ip
-            )
+    any_musts(
+        pos, clock, phase, spos, pass_target, prev_holder, ep, action_start, prm, ip, alive, must, 0, batch
+    )
     for _ in range(max_cycles + 1):
         if check:
             stop = False
@@ -1484,7 +1513,7 @@ def advance_any(
                     stop = True
             if stop:
                 return True
-        _any_cycle(
+        any_cycle(
             pos,
             vel,
             body,
@@ -1509,6 +1538,8 @@ def advance_any(
             grid,
             step_cause,
             must,
+            0,
+            batch,
         )
         ended = False
         for b in range(batch):

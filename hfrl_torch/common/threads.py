@@ -1,0 +1,42 @@
+"""Compiled kernels that release the GIL, run over ranges of rows on a few Python threads: the
+whole-cycle keepaway kernels split their fields, the compiled Sarsa learner its decisions."""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+
+import numba
+
+_POOL: ThreadPoolExecutor | None = None
+
+
+def thread_count(rows: int, min_rows_per_thread: int) -> int:
+    """Threads worth using on ``rows`` rows: ``numba.get_num_threads()`` (which ``threads=`` sets),
+    fewer where a thread would get less than ``min_rows_per_thread`` rows (then a second thread costs
+    more than it saves)."""
+    if rows < 2 * min_rows_per_thread:
+        return 1
+    return max(1, min(numba.get_num_threads(), rows // min_rows_per_thread))
+
+
+def run_split(
+    kernel: Callable[..., object], rows: int, *args: object, min_rows_per_thread: int = 64
+) -> list[object]:
+    """Run ``kernel(*args, lo, hi)`` over contiguous row ranges, one per thread, and return the results
+    in range order."""
+    return run_parts(kernel, thread_count(rows, min_rows_per_thread), rows, *args)
+
+
+def run_parts(kernel: Callable[..., object], threads: int, rows: int, *args: object) -> list[object]:
+    """``kernel(*args, lo, hi)`` on ``threads`` contiguous ranges of ``rows`` rows (one call, in this
+    thread, when ``threads`` is 1)."""
+    global _POOL
+    if threads <= 1:
+        return [kernel(*args, 0, rows)]
+    if _POOL is None or _POOL._max_workers < threads:
+        _POOL = ThreadPoolExecutor(max_workers=threads)
+    edges = [rows * t // threads for t in range(threads + 1)]
+    futures = [_POOL.submit(kernel, *args, lo, hi) for lo, hi in itertools.pairwise(edges)]
+    return [f.result() for f in futures]
