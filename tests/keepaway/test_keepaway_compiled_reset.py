@@ -120,8 +120,8 @@ def test_cycle_outcomes_keep_their_episode_lengths_across_the_reset() -> None:
 @pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason="needs two numba threads")
 @pytest.mark.parametrize("sync", ["any", "all"])
 def test_two_threads_step_the_env_as_one(sync: str) -> None:
-    """With two threads the whole-cycle env splits its fields (``sync="any"``: each lock-step cycle;
-    ``"all"``: each field's run to its decision) and plays bit for bit as on one."""
+    """With two threads the whole-cycle env plays bit for bit as on one: ``sync="all"`` splits its
+    fields' runs to their decisions over the threads, ``"any"`` runs its lock-step cycles on one."""
     runs = {}
     threads_before = numba.get_num_threads()
     try:

@@ -229,31 +229,13 @@ def _decide(
     if not _distinct(learners):
         return False
     m = learners.shape[0]
-    step, gamma = params[STEP], params[GAMMA]
-    delta = np.zeros(m, dtype=q.dtype)
-    for r in range(m):
-        lr = learners[r]
-        act = _select(choose[r], mask[r], tie[r], noise[r], draw[r], params[EPSILON], explore)
-        action[r] = act
-        if last_action[lr] >= 0:
-            delta[r] = reward[r] - q_last[lr] + gamma * q[r, act]  # lines 9-10, 16
-    for r in range(m):  # line 17, every row from the weights before this call
-        lr = learners[r]
-        if last_action[lr] >= 0:
-            _add_traced(weight[tables[lr]], trace_index[lr], trace_value[lr], step * delta[r])
-    for r in range(m):
-        lr = learners[r]
-        act = action[r]
-        chosen[r] = tiles[r, act]
-        starting = last_action[lr] < 0
-        if starting:
-            q_last[lr] = q[r, act]  # line 3
-        else:
-            q_last[lr] = tile_sum(weight[tables[lr]], tiles[r, act])  # line 18
-        _replace_traces(
-            trace_index[lr], trace_value[lr], tiles[r], mask[r], act, starting, params, skip_matching
-        )
-        last_action[lr] = act
+    delta = np.empty(m, dtype=q.dtype)
+    choose_phase(learners, q, choose, mask, reward, tie, noise, draw, params, explore,
+                 last_action, q_last, action, delta, 0, m)  # lines 9-10, 16  # fmt: skip
+    update_phase(weight, tables, learners, params, last_action, trace_index, trace_value,
+                 delta, 1, 0, 1)  # line 17, every row from the weights before this call  # fmt: skip
+    finish_phase(weight, tables, learners, tiles, q, mask, params, skip_matching, last_action,
+                 q_last, trace_index, trace_value, action, chosen, 0, m)  # lines 3, 18-25  # fmt: skip
     return True
 
 
@@ -312,20 +294,20 @@ def decide_states(
 ) -> bool:
     """Tiles and Q of the rows' states ``obs`` [M, F] (``shape``: tilings, actions, size), then
     :func:`_decide` choosing by Q, in one call."""
-    tiles = tile_indices(obs, widths, shape[0], shape[1], shape[2])
-    sums = np.empty(tiles.shape[:2], dtype=np.float64)
-    table_sums(weight, tables[learners], tiles, sums)
-    q = sums.astype(weight.dtype)
+    m = obs.shape[0]
+    tiles = np.empty((m, shape[1], widths.shape[0] * shape[0]), dtype=np.int64)
+    q = np.empty((m, shape[1]), dtype=weight.dtype)
+    states_phase(weight, widths, shape, tables, learners, obs, tiles, q, 0, m)
     return _decide(
         weight, tables, learners, tiles, q, q, mask, reward, tie, noise, draw, params, explore,
         skip_matching, last_action, q_last, trace_index, trace_value, action, chosen,
     )  # fmt: skip
 
 
-# The same decision in phases over row ranges, for a second thread (``SarsaLambdaNumba`` uses them
-# when ``numba.get_num_threads()`` > 1 and there are enough rows): reads, then the traced updates split by
-# weight table (each table's adds in row order, as above), then the new Q_LastAction and traces. The
-# result is :func:`_decide`'s, bit for bit.
+# The decision's phases over row ranges: :func:`_decide` runs each once over all rows; with a second
+# thread (``numba.get_num_threads()`` > 1 and enough rows) ``SarsaLambdaNumba.decide`` splits them: the
+# reads, then the traced updates split by weight table (each table's adds keep their row order), then the
+# new Q_LastAction and traces, bit for bit as on one thread.
 
 
 @_JIT
@@ -368,7 +350,7 @@ def choose_phase(
     lo: int,
     hi: int,
 ) -> None:
-    """The action and TD error of rows ``lo .. hi - 1`` (:func:`_decide`'s first loop)."""
+    """The action and TD error of rows ``lo .. hi - 1`` (lines 9-10, 16)."""
     gamma = params[GAMMA]
     for r in range(lo, hi):
         lr = learners[r]
@@ -421,8 +403,7 @@ def finish_phase(
     lo: int,
     hi: int,
 ) -> None:
-    """Q_LastAction, the traces and the pending action of rows ``lo .. hi - 1`` (:func:`_decide`'s
-    last loop)."""
+    """Q_LastAction, the traces and the pending action of rows ``lo .. hi - 1`` (lines 3, 18-25)."""
     for r in range(lo, hi):
         lr = learners[r]
         act = action[r]
@@ -436,12 +417,6 @@ def finish_phase(
             trace_index[lr], trace_value[lr], tiles[r], mask[r], act, starting, params, skip_matching
         )
         last_action[lr] = act
-
-
-@_JIT
-def distinct(learners: np.ndarray) -> bool:
-    """Whether no learner is named twice."""
-    return _distinct(learners)
 
 
 @_JIT
@@ -556,7 +531,7 @@ class SarsaLambdaNumba(SarsaLambda):
         state = (self._skip_matching, last_action, q_last, trace_index, trace_value, action, chosen)
         threads = thread_count(m, MIN_ROWS_PER_THREAD)
         if threads > 1:
-            if not distinct(rows):
+            if not _distinct(rows):
                 raise ValueError("decide: rows must name distinct learners")
             if values is None:
                 tiles_np = np.empty((m, a, coder.active_tiles), dtype=np.int64)

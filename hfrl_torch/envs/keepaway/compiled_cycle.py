@@ -11,7 +11,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from hfrl_torch.common.threads import run_split, thread_count
+from hfrl_torch.common.threads import run_split
 from hfrl_torch.envs.keepaway import cycle_numba as K
 from hfrl_torch.envs.keepaway.params import KeepawayConfig
 from hfrl_torch.envs.keepaway.skills import _reach_table, get_open_grid
@@ -247,47 +247,10 @@ class CompiledCycle:
         tail = (self.prm, self.ip, self.tabs, self.grid, cycles, cause)
         if sync == "all":
             ok = sum(_split(K.advance_fields, self.batch, *common, restart, max_cycles, *tail)) == 0
-        elif thread_count(self.batch, MIN_FIELDS_PER_THREAD) > 1:
-            ok = self._advance_any_split(common, max_cycles, tail)
         else:
             ok = K.advance_any(*common, max_cycles, *tail)
         if not ok:
             raise RuntimeError("keepaway: no decision within max_cycles_per_step cycles")
-
-    def _advance_any_split(self, common: tuple, max_cycles: int, tail: tuple) -> bool:
-        """``cycle_numba.advance_any``'s lock-step loop with each cycle's fields split over threads: the
-        same cycles, bit for bit (each field draws from its own stream)."""
-        pos, ep, prev_holder, pass_target, action_start, clock, phase, spos = (
-            common[k] for k in (0, 4, 6, 7, 8, 9, 10, 11)
-        )
-        actions, first, running = common[15:]
-        prm, ip, tabs, grid, cycles_out, cause_out = tail
-        batch = self.batch
-        alive, go = running.copy(), first.copy()
-        step_cause = np.zeros(batch, dtype=np.int64)
-        must = np.zeros(batch, dtype=np.bool_)
-        cycles_out[:] = 0
-        cause_out[:] = 0
-        if not alive.any():
-            return True
-        check = not first.any()
-        decision = (pos, clock, phase, spos, pass_target, prev_holder, ep, action_start, prm, ip)
-        _split(K.any_musts, batch, *decision, alive, must)
-        for _ in range(max_cycles + 1):
-            if check and (alive & must).any():
-                return True
-            _split(
-                K.any_cycle, batch, *common[:15], actions, go, alive, prm, ip, tabs, grid, step_cause, must
-            )
-            cycles_out += alive
-            ended = alive & (step_cause != 0)
-            cause_out[ended] = step_cause[ended]
-            alive &= ~ended
-            go[:] = False
-            check = True
-            if ended.any() or not alive.any():
-                return True
-        return False
 
     def env_step(
         self,

@@ -1489,8 +1489,7 @@ def advance_any(
     cause_out: np.ndarray,
 ) -> bool:
     """``sync="any"``: the ``running`` fields in lock-step (a first cycle with ``actions`` where
-    ``first``) until one of them must decide or ends. Returns False if ``max_cycles`` ran out.
-    (compiled_cycle.py runs the same loop with each cycle's fields split over threads.)"""
+    ``first``) until one of them must decide or ends. Returns False if ``max_cycles`` ran out."""
     batch = pos.shape[0]
     alive = running.copy()
     go = first.copy()
