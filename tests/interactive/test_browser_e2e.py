@@ -228,8 +228,12 @@ def test_tetris_presses_are_filed_and_counted_as_saved_through_reconnects_and_fi
         presses.append(_press_safely(page, "/"))
         page.focus("#speed")  # even with the slider focused
         presses.append(_press_safely(page, "z"))
+        page.click(
+            "#pause"
+        )  # paused and resumed with the button, each once the server has said so, then keys
+        page.wait_for_function("document.querySelector('#pause').textContent.startsWith('Resume')")
         page.click("#pause")
-        page.click("#pause")  # paused and resumed with the button, then keys
+        page.wait_for_function("document.querySelector('#pause').textContent.startsWith('Pause')")
         presses.append(_press_safely(page, "/"))
         for p in presses:  # filed under what was on screen 0.3 s before, which is not what is on screen
             seen, word = _filed(p), "Good" if p["said"].startswith("Good") else "Bad"
