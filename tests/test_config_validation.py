@@ -94,6 +94,10 @@ def test_defaults_are_valid():
         ),
         ("fusion=annealed trainer=oracle fusion.factor=1.5", "fusion.factor=1.5 is invalid"),
         (
+            "trainer=interactive trainer.reconnect_wait_s=-1",
+            "trainer.reconnect_wait_s=-1 is invalid: must be a finite number >= 0.0",
+        ),
+        (
             "trainer=interactive trainer.port=70000",
             "trainer.port=70000 is invalid: must be an integer in 0..65535",
         ),

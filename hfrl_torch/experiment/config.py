@@ -415,6 +415,7 @@ def check_interactive(cfg: DictConfig) -> None:
     if OmegaConf.select(cfg, "trainer.actions_per_s") is not None:
         require_float(cfg, "trainer.actions_per_s", MIN_SPEED, MAX_SPEED)
     require_float(cfg, "trainer.wait_for_page_s", 0.0)
+    require_float(cfg, "trainer.reconnect_wait_s", 0.0)
     require_int(cfg, "trainer.max_message_bytes", 64, 65536)
     require_float(cfg, "trainer.max_messages_per_s", 1.0, 1000.0)
     teachers = require_int(cfg, "trainer.max_teachers", 1, 64)

@@ -288,7 +288,7 @@ def make_live_teaching(cfg: DictConfig, log: FeedbackLog, view: str) -> LiveTeac
     drained by a ``BrowserTetrisTrainer`` (keepaway's trainer is ``make_keeper_trainer``'s)."""
     t = cfg.trainer
     speed = DEFAULT_SPEED[view] if t.actions_per_s is None else float(t.actions_per_s)
-    session = TeachingSession(actions_per_s=speed)
+    session = TeachingSession(actions_per_s=speed, reconnect_s=float(t.reconnect_wait_s))
     f = cfg.fusion
     fixed = OmegaConf.select(cfg, "fusion.weight")  # a number: a fixed weight or an annealed one's start
     session.info = {

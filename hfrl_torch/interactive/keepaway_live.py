@@ -242,7 +242,7 @@ class KeepawayWatcher:
     def cycle(self, state: KeepawayState) -> None:
         """After a simulator cycle: wait for its turn while a person teaches, then show it."""
         self.block_cycles += 1
-        if self.session.clients == 0:
+        if not self.session.page_open():
             return
         f = self.field
         cycles = int(state.episode_cycles[f])

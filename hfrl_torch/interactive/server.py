@@ -343,7 +343,8 @@ class TeachingServer:
         sender = asyncio.ensure_future(self._send_frames(ws))
         try:
             config = {"type": "config", "keys": self.keys, "view": self.view, **self.session.info}
-            await self._send(ws, {**config, "reaction_s": self.session.reaction_s})
+            timing = {"reaction_s": self.session.reaction_s, "reconnect_s": self.session.reconnect_s}
+            await self._send(ws, {**config, **timing})
             await self._send(ws, self.session.settings())
             await self._send(ws, self._role(teaching))
             async for msg in ws:

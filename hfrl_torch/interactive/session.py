@@ -69,6 +69,8 @@ class TeachingSession:
     :param sleep: how the loop waits between paced actions (default: ``time.sleep`` in slices that a stop
         ends; tests may pass their own).
     :param reaction_s: the reaction allowance: a press is filed under what was on screen this long before.
+    :param reconnect_s: when the last page drops its connection, the loop holds still this long for it to
+        come back before going on without the person (a network blip does not end their game).
     """
 
     def __init__(
@@ -77,6 +79,7 @@ class TeachingSession:
         clock: Callable[[], float] = time.time,
         sleep: Callable[[float], None] | None = None,
         reaction_s: float = REACTION_S,
+        reconnect_s: float = 10.0,
     ) -> None:
         if not MIN_SPEED <= actions_per_s <= MAX_SPEED:
             raise ValueError(
@@ -84,6 +87,8 @@ class TeachingSession:
             )
         if not 0 <= reaction_s <= 2:
             raise ValueError(f"reaction_s={reaction_s!r} is invalid: must be in 0..2 seconds")
+        if not reconnect_s >= 0:
+            raise ValueError(f"reconnect_s={reconnect_s!r} is invalid: must be at least 0 seconds")
         self.queue = FeedbackQueue(overflow="error")  # a press acknowledged is never dropped
         self.log_left: Callable[[list[FeedbackEvent]], object] | None = None
         """Writes the presses left in the queue when the run stops to the feedback log (set by the trainer
@@ -91,6 +96,8 @@ class TeachingSession:
         self.clock = clock
         self.sleep = self._sleep if sleep is None else sleep
         self.reaction_s = float(reaction_s)
+        self.reconnect_s = float(reconnect_s)
+        self._dropped_at: float | None = None
         self.timeline = ScreenTimeline()
         self.info: dict[str, Any] = {}
         """What the page shows about the run and never changes during it (the weight's explanation, the
@@ -126,12 +133,16 @@ class TeachingSession:
         """A page opened."""
         with self._cond:
             self.clients += 1
+            self._dropped_at = None
             self._cond.notify_all()
 
     def disconnect(self) -> None:
-        """A page closed: with none left, the agent goes on without a teacher (and without a pause)."""
+        """A page closed: with none left, the agent goes on without a teacher (and without a pause), once
+        ``reconnect_s`` has passed without a page coming back."""
         with self._cond:
             self.clients = max(0, self.clients - 1)
+            if self.clients == 0:
+                self._dropped_at = self.clock()
             self._cond.notify_all()
 
     def apply(
@@ -260,10 +271,25 @@ class TeachingSession:
 
     # --- the training loop's side (main thread; request_stop from a signal handler too) ---
 
-    def teaching(self) -> bool:
-        """Whether a person is watching and says they are here."""
+    def page_open(self) -> bool:
+        """Whether a page is open. Within ``reconnect_s`` of the last page dropping out, this waits for it
+        to come back (the loop holds still meanwhile) and says whether it did."""
+        if self.clients > 0:
+            return True
+        if self._dropped_at is None:
+            return False
         with self._cond:
-            return self.clients > 0 and self.here
+            while self.clients == 0 and self._dropped_at is not None and self.ending is None:
+                left = self._dropped_at + self.reconnect_s - self.clock()
+                if left <= 0:
+                    self._dropped_at = None
+                    break
+                self._cond.wait(timeout=min(left, 0.1))
+            return self.clients > 0
+
+    def teaching(self) -> bool:
+        """Whether a person is watching and says they are here (see :meth:`page_open` for a dropped page)."""
+        return self.page_open() and self.here
 
     def wait_for_page(self, timeout: float) -> bool:
         """Wait up to ``timeout`` seconds for a page to open; returns whether one did."""

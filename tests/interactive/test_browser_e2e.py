@@ -22,6 +22,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections import deque
 from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -69,14 +70,16 @@ window.WebSocket = class extends PageSocket {
 };
 """
 # resolves at a moment when the frame on screen REACTION_S ago is unambiguous (no frame change within
-# `margin` ms either side, and it came on this connection) and presses are taken
+# `margin` ms either side, and it came on this connection), another frame has replaced it on screen (so that
+# filing under the one before shows), and presses are taken
 SAFE_MOMENT = """([r, margin]) => new Promise((resolve) => {
   const check = () => {
-    const f = window.__frames, at = performance.now() - r * 1000;
+    const f = window.__frames, now = performance.now(), at = now - r * 1000;
     let i = -1;
     for (let j = 0; j < f.length; j++) if (f[j].t <= at) i = j;
     const next = i + 1 < f.length ? f[i + 1].t : Infinity;
     const ok = i >= 0 && f[i].t >= window.__opened && at - f[i].t > margin && next - at > margin &&
+      now - next > margin &&
       f[i].action !== "-";  // keepaway: a decision of this episode is on screen
     if (ok && !document.getElementById("good").disabled) {
       resolve(true);
@@ -111,13 +114,16 @@ BUTTONS = """() => ["good", "bad"].map((id) => {
 })"""
 
 
-def _url(proc: subprocess.Popen, timeout: float = 120) -> str:
+def _url(proc: subprocess.Popen, said: deque[str], timeout: float = 120) -> str:
+    """The page's URL from train.py's stderr; the lines after it go on into ``said`` (a full pipe would block
+    the run), so that a failing test can show what the run printed."""
     deadline = time.time() + timeout
     assert proc.stderr is not None
     while time.time() < deadline:
         line = proc.stderr.readline()
+        said.append(line)
         if "Teach the agent in your browser:" in line:
-            threading.Thread(target=proc.stderr.read, daemon=True).start()  # a full pipe would block the run
+            threading.Thread(target=said.extend, args=(proc.stderr,), daemon=True).start()
             return line.split("browser:", 1)[1].strip()
         if not line and proc.poll() is not None:
             break
@@ -130,19 +136,47 @@ def _teach(run_dir: Path, *overrides: str) -> Iterator[tuple[subprocess.Popen, P
     args = [sys.executable, str(ROOT / "train.py"), "trainer=interactive", "trainer.port=0", *overrides]
     args += ["logger.backend=none", f"hydra.run.dir={run_dir}"]
     proc = subprocess.Popen(args, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    said: deque[str] = deque(maxlen=40)
     try:
-        url = _url(proc)
+        url = _url(proc, said)
         with playwright.sync_playwright() as p:
             browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
             page = browser.new_page(viewport={"width": 1280, "height": 900})
             page.add_init_script(RECORD_FRAMES)
+            console: deque[str] = deque(maxlen=20)
+            page.on("console", lambda m: console.append(f"{m.type}: {m.text}\n"))
             page.goto(url)
-            page.wait_for_function("!document.getElementById('good').disabled", timeout=90_000)
-            yield proc, page
+            try:
+                _pressable(page, 90_000)
+                yield proc, page
+            except Exception as e:
+                run_said, page_said = "".join(said).replace("\r", "\n"), "".join(console)
+                raise AssertionError(
+                    f"{e}\n--- train.py's stderr:\n{run_said}\n--- the page's console:\n{page_said}"
+                ) from e
             browser.close()
     finally:
         if proc.poll() is None:
             proc.kill()
+
+
+def _pressable(page: Page, timeout_ms: int) -> None:
+    """Wait until Good can be pressed; if it cannot, fail with what the page says instead."""
+    try:
+        page.wait_for_function("!document.getElementById('good').disabled", timeout=timeout_ms)
+    except playwright.TimeoutError:
+        said = page.inner_text("#status")
+        raise AssertionError(f"Good still disabled after {timeout_ms} ms; the page says {said!r}") from None
+
+
+def _twice_at_once(page: Page, key: str) -> None:
+    """Press ``key`` twice within one task of the page, so that no reply from the run can come in between
+    (a person pressing twice quickly on a slow connection), then wait until the run has confirmed both."""
+    page.evaluate(
+        "(k) => { for (const i of [0, 1]) document.dispatchEvent(new KeyboardEvent('keydown', {key: k})); }",
+        key,
+    )
+    page.wait_for_function("Object.keys(S.asked).length === 0", timeout=10_000)
 
 
 def _given(page: Page) -> int:
@@ -247,19 +281,23 @@ def test_tetris_presses_are_filed_and_counted_as_saved_through_reconnects_and_fi
         _fits(page, 390)
         _unmoved(page, ["p", "p", "h", "h"])
         _fits(page, 1280)
+        for key in ["p", "h"]:  # a second press before the first is confirmed undoes it
+            _twice_at_once(page, key)
+        assert page.evaluate("[S.paused, S.here]") == [False, True], page.inner_text("#status")
 
         counted, where = _given(page), page.evaluate(BUTTONS)
         page.evaluate("S.ws.close()")  # the connection drops: a press then is not counted
         page.wait_for_function(
             "document.getElementById('status').textContent.includes('Connection to the run lost')"
-        )
+        )  # and the run holds still for it: with the page away, 50 practice rounds would take well under 1 s
+        assert "The agent waits up to 10 s for this page" in page.inner_text("#status")
         page.keyboard.press("/")
         assert "not counted" in page.inner_text("#last-press") and _given(page) == counted
         assert page.evaluate(BUTTONS) == where  # the buttons stay put
-        page.wait_for_function("!document.getElementById('good').disabled", timeout=30_000)
+        _pressable(page, 30_000)
         presses.append(_press_safely(page, "/"))
         page.reload()  # a new page: it shows the run's count, not zero
-        page.wait_for_function("!document.getElementById('good').disabled", timeout=60_000)
+        _pressable(page, 60_000)
         assert _given(page) == counted + 1
         presses.append(_press_safely(page, "z"))
         (tmp_path / "page.png").write_bytes(page.screenshot())

@@ -130,6 +130,31 @@ def test_a_stop_ends_the_pacing_sleep_and_the_pause_at_once():
     assert 0.15 < time.monotonic() - t0 < 1.0
 
 
+def test_a_dropped_page_is_waited_for_then_the_agent_goes_on_alone():
+    session = TeachingSession(reconnect_s=0.5)
+    assert not session.teaching()  # no page has opened yet: nothing to wait for
+    session.connect()
+    assert session.teaching()
+    session.disconnect()
+    threading.Timer(0.2, session.connect).start()  # it comes back within the wait
+    t0 = time.monotonic()
+    assert session.teaching()
+    assert 0.15 < time.monotonic() - t0 < 0.45
+    session.disconnect()  # it does not come back: the whole wait, then on alone, and no second wait
+    t0 = time.monotonic()
+    assert not session.teaching()
+    assert 0.45 < time.monotonic() - t0 < 1.0
+    t0 = time.monotonic()
+    assert not session.page_open() and time.monotonic() - t0 < 0.05
+    session.connect()
+    session.disconnect()
+    session.request_stop()  # a run that is stopping does not wait
+    t0 = time.monotonic()
+    assert not session.teaching() and time.monotonic() - t0 < 0.05
+    with pytest.raises(ValueError, match=r"reconnect_s=-1 is invalid: must be at least 0 seconds"):
+        TeachingSession(reconnect_s=-1)
+
+
 def test_credit_time_and_the_timeline():
     timeline = ScreenTimeline(size=3)
     for k in range(4):

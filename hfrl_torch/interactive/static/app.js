@@ -10,7 +10,8 @@ const S = {
   ws: null, connected: false, everConnected: false, failures: 0, ended: null,
   keys: { good: "/", bad: "z", pause: "p", presence: "h" }, view: "tetris", info: {},
   role: "teach", paused: false, here: true, live: true, ending: null, progress: {},
-  given: 0, pending: new Map(), nextId: 0, curve: [], frame: null, reaction: 0.3, clearTimer: null,
+  given: 0, pending: new Map(), nextId: 0, curve: [], frame: null, reaction: 0.3, reconnect: 0, clearTimer: null,
+  asked: {},
 };
 
 function send(obj) {
@@ -56,7 +57,8 @@ function statusText() {
     if (!S.everConnected) return "Connecting to the run...";
     return S.failures > 4
       ? "The run does not answer: it may have stopped (the terminal says). This page reconnects if it comes back."
-      : "Connection to the run lost; trying again... Presses are not counted until it is back.";
+      : "Connection to the run lost; trying again... Presses are not counted until it is back." +
+        (S.reconnect > 0 ? ` The agent waits up to ${duration(S.reconnect)} for this page, then goes on without you.` : "");
   }
   if (S.ending === "finishing") return "Finishing: the agent ends this round and saves the run. New presses are not counted.";
   if (S.ending) return "The run is stopping (stopped from the terminal): it saves what you taught. New presses are not counted.";
@@ -145,7 +147,10 @@ function onError(m) {
     const word = S.pending.get(m.id) > 0 ? "Good" : "Bad";
     S.pending.delete(m.id);
     lastPress(`${word} not counted: ${m.message.replace(/^not taken: /, "")}.`, true);
-  } else console.warn("the run rejected a message:", m.message);
+  } else {
+    S.asked = {};
+    console.warn("the run rejected a message:", m.message);
+  }
 }
 
 // --- drawing ---
@@ -351,8 +356,16 @@ function showSummary(m) {
 
 // --- messages from the run ---
 
+// Pause and presence toggle from the last state asked for, not the last one shown: a second press before
+// the run has confirmed the first must undo it, not ask for the same state again.
+function toggle(type, field, shown) {
+  const want = !(field in S.asked ? S.asked[field] : shown);
+  if (send({ type: type, [field]: want })) S.asked[field] = want;
+}
+
 function showSettings(m) {
   S.paused = m.paused; S.here = m.here; S.live = m.live; S.ending = m.ending;
+  for (const field of Object.keys(S.asked)) if (m[field] === S.asked[field]) delete S.asked[field];
   S.progress = m.progress || {}; S.given = m.given;
   if (document.activeElement !== $("speed")) {
     $("speed").value = String(m.actions_per_s);
@@ -365,7 +378,7 @@ function showSettings(m) {
 function onMessage(ev) {
   const m = JSON.parse(ev.data);
   if (m.type === "config") {
-    S.keys = m.keys; S.view = m.view || "tetris"; S.reaction = m.reaction_s;
+    S.keys = m.keys; S.view = m.view || "tetris"; S.reaction = m.reaction_s; S.reconnect = m.reconnect_s || 0;
     showView(S.view);
     $("key-good").textContent = S.keys.good; $("key-bad").textContent = S.keys.bad;
     $("key-pause").textContent = S.keys.pause; $("key-presence").textContent = S.keys.presence;
@@ -389,6 +402,7 @@ function connect() {
   ws.onclose = () => {
     if (S.ws !== ws) return;
     S.connected = false;
+    S.asked = {};
     if (S.pending.size) {
       lastPress(`${S.pending.size} press${S.pending.size > 1 ? "es" : ""} not confirmed before the connection was lost; the count shows what the run took.`, true);
       S.pending.clear();
@@ -411,8 +425,8 @@ document.addEventListener("keydown", (e) => {
   if (e.repeat || e.ctrlKey || e.metaKey || e.altKey || typing(e.target)) return;
   if (e.key === S.keys.good) feedback(1);
   else if (e.key === S.keys.bad) feedback(-1);
-  else if (e.key === S.keys.pause) send({ type: "pause", paused: !S.paused });
-  else if (e.key === S.keys.presence) send({ type: "presence", here: !S.here });
+  else if (e.key === S.keys.pause) toggle("pause", "paused", S.paused);
+  else if (e.key === S.keys.presence) toggle("presence", "here", S.here);
   else return;
   e.preventDefault();
 });
@@ -421,8 +435,8 @@ function button(id, act) {
 }
 button("good", () => feedback(1));
 button("bad", () => feedback(-1));
-button("pause", () => send({ type: "pause", paused: !S.paused }));
-button("presence", () => send({ type: "presence", here: !S.here }));
+button("pause", () => toggle("pause", "paused", S.paused));
+button("presence", () => toggle("presence", "here", S.here));
 button("finish", () => send({ type: "finish" }));
 const speed = $("speed");
 speed.addEventListener("input", () => { $("speed-value").textContent = speed.value; });
