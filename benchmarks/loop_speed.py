@@ -1,12 +1,14 @@
 """Time of every training loop, side by side with another checkout of this project, in one run.
 
-Each loop is one ``train.py`` command with a small budget, run in a fresh process that imports the checkout's
-modules first and then times the command itself (config, set-up, the loop, the last checkpoint), so that
-Python's start-up is left out. The time is the process's CPU time (``time.process_time``: one thread, so the
-work done), which other jobs on the machine disturb far less than wall time; the wall time is kept too.
-The two checkouts' runs alternate (A, B, A, B, ...) so that a machine whose speed drifts slows both alike,
-and the median of the repeats is reported with the ratio B / A. Both run with one thread
-and the same Python (``sys.executable``)::
+Each loop is one ``train.py`` command with a small budget, run in a fresh process that imports all of the
+checkout's modules first and then times the command itself (config, set-up, the loop, the last
+checkpoint), so that Python's start-up and the imports are left out. The time is the process's user CPU
+time (``os.times().user``: one thread, so the work done), which other jobs on the machine disturb far
+less than wall time; the kernel's time, mostly the feedback log's fsyncs (as many in both), is left out
+because it follows the disk's other traffic. The wall time is kept too. The two checkouts' runs alternate
+(A, B, A, B, ...) so that a machine whose speed drifts slows both alike. Reported: the ratio B / A of the
+medians, of the fastest runs (other load only ever adds time), and the median of each round's own ratio
+(its two runs met the same machine). Both run with one thread and the same Python (``sys.executable``)::
 
     git worktree add /tmp/before <commit>
     python benchmarks/loop_speed.py --reference /tmp/before --repeats 3
@@ -28,7 +30,7 @@ LOOPS = {
     # annealed and fixed weights: both checkouts play the same games (the trust factor's match count
     # changed its definition, so its runs differ and their times would not compare)
     "cem+trainer": ["fusion=annealed", "trainer=oracle", "agent.iterations=15"],
-    "tamer": ["agent=tamer", "trainer=oracle", "agent.games=8"],
+    "tamer": ["agent=tamer", "trainer=oracle", "agent.games=16"],  # set-up (~0.6 s) a small share
     "qlearning": ["agent=qlearning", "agent.games=200", "agent.eval_games=0"],
     "pg": ["agent=pg", "agent.games=200", "agent.eval_games=0"],
     "pg+trainer": ["agent=pg", "fusion=annealed", "trainer=oracle", "agent.games=150", "agent.eval_games=0"],
@@ -43,20 +45,26 @@ LOOPS = {
     ],
 }
 COMMON = ["logger.backend=none", "threads=1", "seed=0"]
-# imports the checkout's modules, then times its train.py as ``python train.py <args>`` would run it
+# imports every module of the checkout's package (so that neither side's timing holds imports the other
+# made before it: a loop's module may be imported when it is chosen) and sets them aside from the garbage
+# collector, then times its train.py as ``python train.py <args>`` would run it
 DRIVER = """
-import runpy, sys, time
+import gc, importlib, os, pkgutil, runpy, sys, time
 checkout = sys.argv[1]
 sys.path.insert(0, checkout)
-import hfrl_torch.experiment.train
+import hfrl_torch
+for module in pkgutil.walk_packages(hfrl_torch.__path__, "hfrl_torch."):
+    importlib.import_module(module.name)
+gc.collect()
+gc.freeze()  # the imported modules' objects: the collector's full passes then scan only what the run makes
 sys.argv = [checkout + "/train.py", *sys.argv[2:]]
-t0, c0 = time.perf_counter(), time.process_time()
+t0, c0 = time.perf_counter(), os.times().user
 try:
     runpy.run_path(checkout + "/train.py", run_name="__main__")
 except SystemExit as exit:
     if exit.code:
         raise
-print("SECONDS", time.process_time() - c0, time.perf_counter() - t0, file=sys.stderr)
+print("SECONDS", os.times().user - c0, time.perf_counter() - t0, file=sys.stderr)
 """
 
 
@@ -94,10 +102,14 @@ def main() -> None:
                         cpu[label].append(c)
                         wall[label].append(w)
             a, b = statistics.median(cpu["reference"]), statistics.median(cpu["this"])
+            fastest_a, fastest_b = min(cpu["reference"]), min(cpu["this"])
+            pairs = [b_ / a_ for a_, b_ in zip(cpu["reference"], cpu["this"], strict=True)]
             results[name] = {
                 "reference_cpu_s": a,
                 "this_cpu_s": b,
                 "ratio": b / a,
+                "fastest_ratio": fastest_b / fastest_a,
+                "paired_ratio": statistics.median(pairs),
                 "cpu_s": cpu,
                 "wall_s": wall,
             }

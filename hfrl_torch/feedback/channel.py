@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import numba
 import numpy as np
 import torch
 from tensordict import TensorDict
@@ -45,7 +46,13 @@ class FeedbackChannel:
         self._value = np.zeros((boards, capacity))
         self._source = np.zeros((boards, capacity), dtype=np.int64)
         self._waiting = 0  # events in the queues (a delivery with none due is the common case)
-        self._none = self._delivery(np.zeros((boards, slots), dtype=bool), None)
+        shape = (boards, slots)
+        self._none = self._entries(
+            np.zeros(shape),
+            np.full(shape, np.nan),
+            np.zeros(shape, dtype=bool),
+            np.zeros(shape, dtype=np.int64),
+        )
 
     @property
     def pending(self) -> int:
@@ -89,15 +96,8 @@ class FeedbackChannel:
 
     def _queue(self, rows: np.ndarray, times: np.ndarray, values: np.ndarray, codes: np.ndarray) -> None:
         """Put events into free slots: board b's j-th event (in the order given) in its j-th free slot."""
-        need = np.bincount(rows, minlength=self.boards)
-        while bool((np.isinf(self._time).sum(1) < need).any()):
+        while not _queue_events(self._time, self._value, self._source, rows, times, values, codes):
             self._grow()
-        free = np.argsort(~np.isinf(self._time), axis=1, kind="stable")
-        nth = np.arange(rows.size) - (np.cumsum(need) - need)[rows]  # the event's rank on its board
-        slot = free[rows, nth]
-        self._time[rows, slot] = times
-        self._value[rows, slot] = values
-        self._source[rows, slot] = codes
         self._waiting += int(rows.size)
 
     def _grow(self) -> None:
@@ -132,28 +132,20 @@ class FeedbackChannel:
             clock = now.detach().to(device="cpu", dtype=torch.float64).reshape(-1, 1).numpy()
         else:
             clock = float(now)
-        due = np.isfinite(self._time) & (self._time <= clock)
-        if not due.any():
+        clocks = np.broadcast_to(clock, (self.boards, 1))[:, 0].astype(np.float64)
+        taken = np.zeros((self.boards, self.slots), dtype=np.bool_)
+        value = np.zeros((self.boards, self.slots))
+        time = np.full((self.boards, self.slots), np.nan)
+        source = np.zeros((self.boards, self.slots), dtype=np.int64)
+        n = _take_due(self._time, self._value, self._source, clocks, taken, value, time, source)
+        if n == 0:
             return self._none
-        order = np.argsort(np.where(due, self._time, np.inf), axis=1, kind="stable")[:, : self.slots]
-        taken = np.take_along_axis(due, order, 1)
-        out = self._delivery(taken, order)
-        rows, cols = taken.nonzero()
-        slot = order[rows, cols]
-        self._time[rows, slot] = np.inf
-        self._value[rows, slot] = 0.0
-        self._source[rows, slot] = 0
-        self._waiting -= int(rows.size)
-        return out
+        self._waiting -= n
+        return self._entries(value, time, taken, source)
 
-    def _delivery(self, taken: np.ndarray, order: np.ndarray | None) -> TensorDict:
-        if order is None:  # no event: empty slots
-            value, time = np.zeros(taken.shape), np.full(taken.shape, np.nan)
-            source = np.zeros(taken.shape, dtype=np.int64)
-        else:
-            value = np.where(taken, np.take_along_axis(self._value, order, 1), 0.0)
-            time = np.where(taken, np.take_along_axis(self._time, order, 1), np.nan)
-            source = np.where(taken, np.take_along_axis(self._source, order, 1), 0)
+    def _entries(
+        self, value: np.ndarray, time: np.ndarray, taken: np.ndarray, source: np.ndarray
+    ) -> TensorDict:
         return TensorDict(
             {
                 keys.FEEDBACK: torch.from_numpy(value),
@@ -193,3 +185,56 @@ class FeedbackChannel:
         self._source = source.detach().cpu().numpy().copy()
         self.capacity = shape[1]
         self._waiting = int(np.isfinite(self._time).sum())
+
+
+@numba.njit(cache=True, nogil=True)
+def _queue_events(time, value, source, rows, times, values, codes):  # type: ignore[no-untyped-def]
+    """Each event into its board's first free slot, in the order given; False (and nothing written) if a
+    board has too few free slots."""
+    boards, capacity = time.shape
+    need = np.zeros(boards, dtype=np.int64)
+    for i in range(rows.size):
+        need[rows[i]] += 1
+    for b in range(boards):
+        if need[b]:
+            free = 0
+            for j in range(capacity):
+                free += np.isinf(time[b, j])
+            if free < need[b]:
+                return False
+    for i in range(rows.size):
+        b = rows[i]
+        j = 0
+        while not np.isinf(time[b, j]):
+            j += 1
+        time[b, j] = times[i]
+        value[b, j] = values[i]
+        source[b, j] = codes[i]
+    return True
+
+
+@numba.njit(cache=True, nogil=True)
+def _take_due(time, value, source, clocks, taken, out_value, out_time, out_source):  # type: ignore[no-untyped-def]
+    """Move each board's due events (time <= its clock), oldest first (ties: the lower slot), into its K
+    output slots and free their queue slots; returns how many moved."""
+    boards, capacity = time.shape
+    slots = taken.shape[1]
+    moved = 0
+    for b in range(boards):
+        for k in range(slots):
+            best = -1
+            for j in range(capacity):
+                t = time[b, j]
+                if np.isfinite(t) and t <= clocks[b] and (best < 0 or t < time[b, best]):
+                    best = j
+            if best < 0:
+                break
+            taken[b, k] = True
+            out_value[b, k] = value[b, best]
+            out_time[b, k] = time[b, best]
+            out_source[b, k] = source[b, best]
+            time[b, best] = np.inf
+            value[b, best] = 0.0
+            source[b, best] = 0
+            moved += 1
+    return moved
