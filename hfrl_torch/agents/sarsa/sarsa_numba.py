@@ -201,45 +201,6 @@ def _replace_traces(
 
 
 @_JIT
-def _decide(
-    weight: np.ndarray,
-    tables: np.ndarray,
-    learners: np.ndarray,
-    tiles: np.ndarray,
-    q: np.ndarray,
-    choose: np.ndarray,
-    mask: np.ndarray,
-    reward: np.ndarray,
-    tie: np.ndarray,
-    noise: np.ndarray,
-    draw: np.ndarray,
-    params: np.ndarray,
-    explore: bool,
-    skip_matching: bool,
-    last_action: np.ndarray,
-    q_last: np.ndarray,
-    trace_index: np.ndarray,
-    trace_value: np.ndarray,
-    action: np.ndarray,
-    chosen: np.ndarray,
-) -> bool:
-    """``SarsaLambda.decide`` of rows ``learners`` [M] from their ``tiles`` [M, A, N] and ``q`` [M, A]:
-    choose (by ``choose`` [M, A]), update every table from the same weights, then Q_LastAction and traces;
-    False (and nothing changed) when the rows do not name distinct learners."""
-    if not _distinct(learners):
-        return False
-    m = learners.shape[0]
-    delta = np.empty(m, dtype=q.dtype)
-    choose_phase(learners, q, choose, mask, reward, tie, noise, draw, params, explore,
-                 last_action, q_last, action, delta, 0, m)  # lines 9-10, 16  # fmt: skip
-    update_phase(weight, tables, learners, params, last_action, trace_index, trace_value,
-                 delta, 1, 0, 1)  # line 17, every row from the weights before this call  # fmt: skip
-    finish_phase(weight, tables, learners, tiles, q, mask, params, skip_matching, last_action,
-                 q_last, trace_index, trace_value, action, chosen, 0, m)  # lines 3, 18-25  # fmt: skip
-    return True
-
-
-@_JIT
 def decide_values(
     weight: np.ndarray,
     tables: np.ndarray,
@@ -262,11 +223,21 @@ def decide_values(
     action: np.ndarray,
     chosen: np.ndarray,
 ) -> bool:
-    """:func:`_decide` on the caller's tiles and Q (``decide(values=..., choose_by=...)``)."""
-    return _decide(
-        weight, tables, learners, tiles, q, choose, mask, reward, tie, noise, draw, params, explore,
-        skip_matching, last_action, q_last, trace_index, trace_value, action, chosen,
-    )  # fmt: skip
+    """``SarsaLambda.decide`` of rows ``learners`` [M] from their ``tiles`` [M, A, N] and ``q`` [M, A] (the
+    caller's, for ``decide(values=..., choose_by=...)``):
+    choose (by ``choose`` [M, A]), update every table from the same weights, then Q_LastAction and traces;
+    False (and nothing changed) when the rows do not name distinct learners."""
+    if not _distinct(learners):
+        return False
+    m = learners.shape[0]
+    delta = np.empty(m, dtype=q.dtype)
+    choose_phase(learners, q, choose, mask, reward, tie, noise, draw, params, explore,
+                 last_action, q_last, action, delta, 0, m)  # lines 9-10, 16  # fmt: skip
+    update_phase(weight, tables, learners, params, last_action, trace_index, trace_value,
+                 delta, 1, 0, 1)  # line 17, every row from the weights before this call  # fmt: skip
+    finish_phase(weight, tables, learners, tiles, q, mask, params, skip_matching, last_action,
+                 q_last, trace_index, trace_value, action, chosen, 0, m)  # lines 3, 18-25  # fmt: skip
+    return True
 
 
 @_JIT
@@ -293,18 +264,18 @@ def decide_states(
     chosen: np.ndarray,
 ) -> bool:
     """Tiles and Q of the rows' states ``obs`` [M, F] (``shape``: tilings, actions, size), then
-    :func:`_decide` choosing by Q, in one call."""
+    :func:`decide_values` choosing by Q, in one call."""
     m = obs.shape[0]
     tiles = np.empty((m, shape[1], widths.shape[0] * shape[0]), dtype=np.int64)
     q = np.empty((m, shape[1]), dtype=weight.dtype)
     states_phase(weight, widths, shape, tables, learners, obs, tiles, q, 0, m)
-    return _decide(
+    return decide_values(
         weight, tables, learners, tiles, q, q, mask, reward, tie, noise, draw, params, explore,
         skip_matching, last_action, q_last, trace_index, trace_value, action, chosen,
     )  # fmt: skip
 
 
-# The decision's phases over row ranges: :func:`_decide` runs each once over all rows; with a second
+# The decision's phases over row ranges: :func:`decide_values` runs each once over all rows; with a second
 # thread (``numba.get_num_threads()`` > 1 and enough rows) ``SarsaLambdaNumba.decide`` splits them: the
 # reads, then the traced updates split by weight table (each table's adds keep their row order), then the
 # new Q_LastAction and traces, bit for bit as on one thread.

@@ -1365,33 +1365,7 @@ def advance_fields(
 
 
 @numba.njit(cache=True, nogil=True)
-def any_musts(
-    pos: np.ndarray,
-    clock: np.ndarray,
-    phase: np.ndarray,
-    spos: np.ndarray,
-    pass_target: np.ndarray,
-    prev_holder: np.ndarray,
-    ep: np.ndarray,
-    action_start: np.ndarray,
-    prm: np.ndarray,
-    ip: np.ndarray,
-    alive: np.ndarray,
-    must_out: np.ndarray,
-    lo: int,
-    hi: int,
-) -> None:
-    """Whether the holder of each ``alive`` field of ``lo .. hi - 1`` must decide now (False elsewhere)."""
-    for b in range(lo, hi):
-        must_out[b] = False
-        if alive[b]:
-            _, _, must_out[b] = _decision(
-                b, pos, clock, phase, spos, pass_target, prev_holder, ep, action_start, prm, ip
-            )
-
-
-@numba.njit(cache=True, nogil=True)
-def any_cycle(
+def _any_cycle(
     pos: np.ndarray,
     vel: np.ndarray,
     body: np.ndarray,
@@ -1416,15 +1390,13 @@ def any_cycle(
     grid: np.ndarray,
     cause_out: np.ndarray,
     must_out: np.ndarray,
-    lo: int,
-    hi: int,
 ) -> None:
-    """One ``sync="any"`` cycle of the ``running`` fields of ``lo .. hi - 1`` (``actions`` where ``go``):
-    each one's end cause and, where it runs on, whether its holder must decide."""
+    """One ``sync="any"`` cycle of the ``running`` fields (``actions`` where ``go``): each one's end cause
+    and, where it runs on, whether its holder must decide."""
     count = uniform_count(ip)
     scr = scratch(ip, grid)
     u = np.empty(count)
-    for b in range(lo, hi):
+    for b in range(pos.shape[0]):
         must_out[b] = False
         if not running[b]:
             continue
@@ -1501,9 +1473,11 @@ def advance_any(
     if not alive.any():
         return True
     check = not first.any()
-    any_musts(
-        pos, clock, phase, spos, pass_target, prev_holder, ep, action_start, prm, ip, alive, must, 0, batch
-    )
+    for b in range(batch):
+        if alive[b]:
+            _, _, must[b] = _decision(
+                b, pos, clock, phase, spos, pass_target, prev_holder, ep, action_start, prm, ip
+            )
     for _ in range(max_cycles + 1):
         if check:
             stop = False
@@ -1512,7 +1486,7 @@ def advance_any(
                     stop = True
             if stop:
                 return True
-        any_cycle(
+        _any_cycle(
             pos,
             vel,
             body,
@@ -1537,8 +1511,6 @@ def advance_any(
             grid,
             step_cause,
             must,
-            0,
-            batch,
         )
         ended = False
         for b in range(batch):
