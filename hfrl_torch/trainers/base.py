@@ -106,34 +106,35 @@ class Trainer(ABC):
         episode: torch.Tensor,
     ) -> Events:
         """One event valued ``values[b]`` at ``time`` on each board b where ``give[b]``, then logged."""
-        steps = placement_steps(obs)
+        steps = placement_steps(obs).tolist()
+        value, games = values.reshape(-1).tolist(), episode.reshape(-1).to(torch.int64).tolist()
         events: Events = [
             [
                 FeedbackEvent(
-                    time=time,
-                    value=float(values[i]),
-                    source=self.source,
-                    step=int(steps[i]),
-                    episode=int(episode[i]),
+                    time=time, value=float(value[i]), source=self.source, step=steps[i], episode=games[i]
                 )
             ]
-            if give[i]
+            if g
             else []
-            for i in range(give.shape[0])
+            for i, g in enumerate(give.reshape(-1).tolist())
         ]
         return self._emit(events)
 
     def _emit(self, events: Events) -> Events:
-        """Append every event to the log (each board's under its own session label) and count them."""
-        self.given += sum(len(e) for e in events)
-        if self.log is None:
+        """Append every event to the log (each board's under its own session label), all boards' with one
+        write and one fsync, and count them."""
+        counts = [len(e) for e in events]
+        self.given += sum(counts)
+        if self.log is None or not any(counts):
             return events
-        out: Events = []
-        for b, evs in enumerate(events):
-            label = board_session(self.log.session, b, len(events))
-            stamped = [e if e.session else e.stamped(label) for e in evs]
-            out.append(self.log.extend(stamped))
-        return out
+        boards = len(events)
+        stamped = [
+            e if e.session else e.stamped(board_session(self.log.session, b, boards))
+            for b, evs in enumerate(events)
+            for e in evs
+        ]
+        written = iter(self.log.extend(stamped))
+        return [[next(written) for _ in range(n)] for n in counts]
 
 
 def placement_steps(obs: TensorDictBase) -> torch.Tensor:

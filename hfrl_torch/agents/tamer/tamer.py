@@ -82,9 +82,10 @@ class TamerAgent:
         self, obs: TensorDictBase, action: torch.Tensor, time: float, active: torch.Tensor | None = None
     ) -> None:
         """Remember the placement each active learner makes at ``time`` (its phi), for credit."""
-        phi = placement_deltas(obs)
-        chosen = phi.gather(1, action.view(-1, 1, 1).expand(-1, 1, phi.shape[-1])).squeeze(1)
-        self.record_phi(chosen, time, active)
+        after = obs[keys.AFTERSTATE_FEATURES]
+        chosen = after.gather(1, action.view(-1, 1, 1).expand(-1, 1, after.shape[-1])).squeeze(1)
+        before = obs[keys.STATE_FEATURES]
+        self.record_phi(chosen.to(torch.float64) - before.to(torch.float64), time, active)
 
     def record_phi(self, chosen: torch.Tensor, time: float, active: torch.Tensor | None = None) -> None:
         """Remember the features ``chosen`` [L, F] of the step each active learner takes at ``time``."""
