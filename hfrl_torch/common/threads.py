@@ -30,15 +30,13 @@ def run_split(
 
 
 def run_parts(kernel: Callable[..., object], threads: int, rows: int, *args: object) -> list[object]:
-    """``kernel(*args, lo, hi)`` on ``threads`` contiguous ranges of ``rows`` rows (one call, in this
-    thread, when ``threads`` is 1)."""
+    """``kernel(*args, lo, hi)`` on ``threads`` contiguous ranges of ``rows`` rows: the first in this thread,
+    the others on the pool (one call, in this thread, when ``threads`` is 1)."""
     global _POOL
-    if threads <= 1:
-        return [kernel(*args, 0, rows)]
-    if _POOL is None or _POOL._max_workers < threads:
-        _POOL = ThreadPoolExecutor(max_workers=threads)
-    edges = [rows * t // threads for t in range(threads + 1)]
-    ranges = list(itertools.pairwise(edges))
-    futures = [_POOL.submit(kernel, *args, lo, hi) for lo, hi in ranges[1:]]
-    first = kernel(*args, *ranges[0])  # this thread runs the first range: one hand-off fewer
+    parts = max(1, threads)
+    ranges = list(itertools.pairwise(rows * t // parts for t in range(parts + 1)))
+    if parts > 1 and (_POOL is None or _POOL._max_workers < parts - 1):
+        _POOL = ThreadPoolExecutor(max_workers=parts - 1)
+    futures = [_POOL.submit(kernel, *args, lo, hi) for lo, hi in ranges[1:]]  # none when parts is 1
+    first = kernel(*args, *ranges[0])
     return [first, *(f.result() for f in futures)]

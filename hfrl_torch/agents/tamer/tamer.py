@@ -17,11 +17,14 @@ from hfrl_torch.models.reward_model import LinearRewardModel
 _PAST = -1.0e12  # start time of an empty history slot: long before any real step
 
 
-def placement_deltas(obs: TensorDictBase) -> torch.Tensor:
-    """phi(s, a) = f(afterstate of a) - f(s) for every placement: ``[B, A, F]`` float64."""
-    after = obs[keys.AFTERSTATE_FEATURES].to(torch.float64)
-    before = obs[keys.STATE_FEATURES].to(torch.float64)
-    return after - before.unsqueeze(-2)
+def placement_deltas(obs: TensorDictBase, action: torch.Tensor | None = None) -> torch.Tensor:
+    """phi(s, a) = f(afterstate of a) - f(s), float64: ``[B, A, F]`` for every placement, or ``[B, F]``
+    for the placement ``action`` [B] of each board only."""
+    after = obs[keys.AFTERSTATE_FEATURES]
+    if action is not None:
+        after = after.gather(1, action.view(-1, 1, 1).expand(-1, 1, after.shape[-1]))
+    deltas = after.to(torch.float64) - obs[keys.STATE_FEATURES].to(torch.float64).unsqueeze(-2)
+    return deltas if action is None else deltas.squeeze(1)
 
 
 class TamerAgent:
@@ -82,10 +85,7 @@ class TamerAgent:
         self, obs: TensorDictBase, action: torch.Tensor, time: float, active: torch.Tensor | None = None
     ) -> None:
         """Remember the placement each active learner makes at ``time`` (its phi), for credit."""
-        after = obs[keys.AFTERSTATE_FEATURES]
-        chosen = after.gather(1, action.view(-1, 1, 1).expand(-1, 1, after.shape[-1])).squeeze(1)
-        before = obs[keys.STATE_FEATURES]
-        self.record_phi(chosen.to(torch.float64) - before.to(torch.float64), time, active)
+        self.record_phi(placement_deltas(obs, action), time, active)
 
     def record_phi(self, chosen: torch.Tensor, time: float, active: torch.Tensor | None = None) -> None:
         """Remember the features ``chosen`` [L, F] of the step each active learner takes at ``time``."""
