@@ -235,7 +235,8 @@ def test_make_keepers_follows_agent_kernels(compose_train):
 @pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason="needs two numba threads")
 @pytest.mark.parametrize("lambda_", [0.0, 0.9])
 @pytest.mark.parametrize("fused", [False, True])
-def test_two_threads_decide_as_one_bit_for_bit(lambda_, fused):
+@pytest.mark.parametrize("m", [10, 150])
+def test_two_threads_decide_as_one_bit_for_bit(lambda_, fused, m):
     """Above MIN_ROWS_PER_THREAD rows a second thread splits the decision into phases (updates split by
     weight table); rows on shared tables, starting, continuing and ending: the same actions and state."""
 
@@ -246,14 +247,13 @@ def test_two_threads_decide_as_one_bit_for_bit(lambda_, fused):
 
     agents = {threads: one() for threads in (1, 2)}
     gen = torch.Generator().manual_seed(9)
-    rows = torch.randperm(200, generator=gen)[:150]
-    steps = [
-        (torch.rand(150, 13, generator=gen) * 20, torch.rand(150, 3, generator=gen) * 5) for _ in range(4)
-    ]
-    mask = torch.ones(150, 3, dtype=torch.bool)
+    rows = torch.randperm(200, generator=gen)[:m]
+    steps = [(torch.rand(m, 13, generator=gen) * 20, torch.rand(m, 3, generator=gen) * 5) for _ in range(4)]
+    mask = torch.ones(m, 3, dtype=torch.bool)
     mask[::7, 2] = False
     for threads, agent in agents.items():
         numba.set_num_threads(threads)
+        assert thread_count(m, MIN_ROWS_PER_THREAD) == threads
         for i, (obs, reward) in enumerate(steps):
             values = choose = None
             if fused:
@@ -261,10 +261,10 @@ def test_two_threads_decide_as_one_bit_for_bit(lambda_, fused):
                 choose = values[1].double() + reward
             agent.decide(rows, obs, mask, reward[:, 0], values=values, choose_by=choose)
             if i == 2:
-                agent.end_episode(rows[:50], reward[:50, 1])
+                agent.end_episode(rows[: m // 3], reward[: m // 3, 1])
     numba.set_num_threads(1)
     one_thread, two_threads = agents[1], agents[2]
-    assert thread_count(150, MIN_ROWS_PER_THREAD) == 1  # (back to one thread)
+    assert thread_count(m, MIN_ROWS_PER_THREAD) == 1  # (back to one thread)
     for name in ("last_action", "q_last", "trace_index", "trace_value"):
         assert torch.equal(getattr(one_thread, name), getattr(two_threads, name)), name
     assert torch.equal(one_thread.coder.weight, two_threads.coder.weight)

@@ -9,6 +9,7 @@ import torch
 
 from hfrl_torch import keys
 from hfrl_torch.envs.keepaway import KeepawayConfig, KeepawayEnv, KeepawaySimulator, play_benchmark_policy
+from hfrl_torch.envs.keepaway.compiled_cycle import MIN_FIELDS_PER_THREAD, _parts
 from hfrl_torch.envs.keepaway.perception import observe
 
 SERVER = {"perception": "server", "hold_ball": "reference", "decision_timing": "server"}
@@ -118,21 +119,24 @@ def test_cycle_outcomes_keep_their_episode_lengths_across_the_reset() -> None:
 
 
 @pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason="needs two numba threads")
+@pytest.mark.parametrize("batch", [10, 256])
 @pytest.mark.parametrize("sync", ["any", "all"])
-def test_two_threads_step_the_env_as_one(sync: str) -> None:
-    """With two threads the whole-cycle env plays bit for bit as on one: ``sync="all"`` splits its
-    fields' runs to their decisions over the threads, ``"any"`` runs its lock-step cycles on one."""
+def test_two_threads_step_the_env_as_one(sync: str, batch: int) -> None:
+    """With two threads the whole-cycle env plays bit for bit as on one: its kernels split the fields
+    over the threads (``prange`` regions), the cycle-playing ones from 8 fields, the bookkeeping from 128."""
     runs = {}
     threads_before = numba.get_num_threads()
     try:
         for threads in (1, 2):
             numba.set_num_threads(threads)
-            env = KeepawayEnv(256, KeepawayConfig(kernels="cycle", **SERVER), seed=5, sync=sync)
+            assert _parts(batch, playing=True) == threads
+            assert _parts(batch) == (threads if batch >= 2 * MIN_FIELDS_PER_THREAD else 1)
+            env = KeepawayEnv(batch, KeepawayConfig(kernels="cycle", **SERVER), seed=5, sync=sync)
             gen = torch.Generator().manual_seed(1)
             td = env.reset()
             outs = []
             for _ in range(120 if sync == "any" else 25):
-                td[keys.ACTION] = torch.randint(0, 3, (256,), generator=gen)
+                td[keys.ACTION] = torch.randint(0, 3, (batch,), generator=gen)
                 stepped, td = env.step_and_maybe_reset(td)
                 outs.append(stepped["next"].clone())
             runs[threads] = (torch.stack(outs), env.sim.state.pos.clone())

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from hfrl_torch.agents.sarsa.sarsa import SarsaLambda
-from hfrl_torch.common.threads import run_parts, thread_count
+from hfrl_torch.common.threads import thread_count
 from hfrl_torch.models.tile_coding import TileCoding
 from hfrl_torch.models.tile_coding_numba import table_sums, tile_indices, tile_row, tile_sum
 
@@ -31,7 +31,9 @@ _JIT = numba.njit(cache=True, nogil=True)
 
 # entries of the ``params`` array (in the weights' dtype, so the kernel computes in it as torch does)
 STEP, GAMMA, DECAY, MIN_TRACE, EPSILON = range(5)
-MIN_ROWS_PER_THREAD = 32  # decisions a second thread needs to gain (at about 20 us a row, memory-bound)
+MIN_ROWS_PER_THREAD = (
+    4  # decisions a second thread needs to gain (10-20 us a row, memory-bound; a prange region 4-11 us)
+)
 
 
 @_JIT
@@ -276,9 +278,59 @@ def decide_states(
 
 
 # The decision's phases over row ranges: :func:`decide_values` runs each once over all rows; with a second
-# thread (``numba.get_num_threads()`` > 1 and enough rows) ``SarsaLambdaNumba.decide`` splits them: the
-# reads, then the traced updates split by weight table (each table's adds keep their row order), then the
-# new Q_LastAction and traces, bit for bit as on one thread.
+# thread (``numba.get_num_threads()`` > 1 and enough rows) ``SarsaLambdaNumba.decide`` calls
+# :func:`decide_parts`, which splits them in ``prange`` regions: the reads, then the traced updates split by
+# weight table (each table's adds keep their row order), then the new Q_LastAction and traces, bit for bit
+# as on one thread. OpenMP's workers take a region in a few microseconds; the Python thread pool this
+# replaced cost 75-150 us a hand-off on this VM, three times a decision.
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def decide_parts(
+    parts: int,
+    weight: np.ndarray,
+    widths: np.ndarray,
+    shape: np.ndarray,
+    tables: np.ndarray,
+    learners: np.ndarray,
+    obs: np.ndarray,
+    with_states: bool,
+    tiles: np.ndarray,
+    q: np.ndarray,
+    choose: np.ndarray,
+    mask: np.ndarray,
+    reward: np.ndarray,
+    tie: np.ndarray,
+    noise: np.ndarray,
+    draw: np.ndarray,
+    params: np.ndarray,
+    explore: bool,
+    skip_matching: bool,
+    last_action: np.ndarray,
+    q_last: np.ndarray,
+    trace_index: np.ndarray,
+    trace_value: np.ndarray,
+    action: np.ndarray,
+    chosen: np.ndarray,
+) -> None:
+    """:func:`decide_states` (``with_states``: ``tiles`` and ``q`` filled from ``obs``) or
+    :func:`decide_values` of distinct learners, each phase split over ``parts`` threads: the rows'
+    reads by row range, the traced updates by weight table, bit for bit as one thread."""
+    m = learners.shape[0]
+    if with_states:
+        for p in numba.prange(parts):
+            states_phase(weight, widths, shape, tables, learners, obs, tiles, q, m * p // parts,
+                         m * (p + 1) // parts)  # fmt: skip
+    delta = np.empty(m, dtype=weight.dtype)
+    choose_phase(learners, q, choose, mask, reward, tie, noise, draw, params, explore,
+                 last_action, q_last, action, delta, 0, m)  # fmt: skip
+    for p in numba.prange(parts):
+        update_phase(weight, tables, learners, params, last_action, trace_index, trace_value,
+                     delta, parts, p, p + 1)  # fmt: skip
+    for p in numba.prange(parts):
+        finish_phase(weight, tables, learners, tiles, q, mask, params, skip_matching, last_action,
+                     q_last, trace_index, trace_value, action, chosen, m * p // parts,
+                     m * (p + 1) // parts)  # fmt: skip
 
 
 @_JIT
@@ -504,32 +556,15 @@ class SarsaLambdaNumba(SarsaLambda):
         if threads > 1:
             if not _distinct(rows):
                 raise ValueError("decide: rows must name distinct learners")
-            if values is None:
+            with_states = values is None
+            if with_states:
                 tiles_np = np.empty((m, a, coder.active_tiles), dtype=np.int64)
                 q_np = np.empty((m, a), dtype=weight.dtype)
-                run_parts(
-                    states_phase,
-                    threads,
-                    m,
-                    weight,
-                    widths,
-                    self._shape,
-                    tables,
-                    rows,
-                    _np(obs),
-                    tiles_np,
-                    q_np,
-                )
             else:
                 tiles_np, q_np = _np(values[0], torch.int64), _np(values[1], dtype)
             choose = q_np if choose_by is None else _np(choose_by)
-            delta = np.empty(m, dtype=weight.dtype)
-            run_parts(choose_phase, threads, m, rows, q_np, choose, *common[:-2], self._params, explore,
-                      last_action, q_last, action, delta)  # fmt: skip
-            run_parts(update_phase, threads, threads, weight, tables, rows, self._params, last_action,
-                      trace_index, trace_value, delta, threads)  # fmt: skip
-            run_parts(finish_phase, threads, m, weight, tables, rows, tiles_np, q_np, common[0], self._params,
-                      *state)  # fmt: skip
+            decide_parts(threads, weight, widths, self._shape, tables, rows, _np(obs), with_states, tiles_np,
+                         q_np, choose, *common, *state)  # fmt: skip
             self.chosen_tiles = torch.from_numpy(chosen)
             return torch.from_numpy(action)
         if values is None and choose_by is None:

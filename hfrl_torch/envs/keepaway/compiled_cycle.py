@@ -4,26 +4,29 @@ views the kernels update in place (``kernels="cycle"``)."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from hfrl_torch.common.threads import run_split
+from hfrl_torch.common.threads import thread_count
 from hfrl_torch.envs.keepaway import cycle_numba as K
 from hfrl_torch.envs.keepaway.params import KeepawayConfig
 from hfrl_torch.envs.keepaway.skills import _reach_table, get_open_grid
 
 POLICY_CODES = {"hold": 0, "random": 1, "hand": 2}
-MIN_FIELDS_PER_THREAD = 64  # below this a second thread costs more than it saves
+# Fields a thread needs before a second one gains (a prange region costs 4-11 us here): kernels that play
+# cycles (several us a field) split small batches, the per-field bookkeeping (under 1 us a field) only large.
+MIN_FIELDS_PER_THREAD = 64
+MIN_PLAYING_FIELDS_PER_THREAD = 4
 
 
-def _split(kernel: Callable[..., object], batch: int, *args: object) -> list[object]:
-    """Run ``kernel(*args, lo, hi)`` over field ranges, one per thread (``numba.get_num_threads()``,
-    which ``threads=`` sets), and return the results; the kernels release the GIL."""
-    return run_split(kernel, batch, *args, min_rows_per_thread=MIN_FIELDS_PER_THREAD)
+def _parts(batch: int, playing: bool = False) -> int:
+    """The field ranges a kernel splits ``batch`` fields into: one per thread (``numba.get_num_threads()``,
+    which ``threads=`` sets), fewer where a thread would get under ``MIN_PLAYING_FIELDS_PER_THREAD``
+    fields (``playing``: the kernel plays cycles) or ``MIN_FIELDS_PER_THREAD`` fields."""
+    return thread_count(batch, MIN_PLAYING_FIELDS_PER_THREAD if playing else MIN_FIELDS_PER_THREAD)
 
 
 _STATE_ORDER = (
@@ -159,9 +162,7 @@ class CompiledCycle:
     def cycle(self, state: object, actions: Tensor, active: Tensor, uniforms: np.ndarray) -> Tensor:
         """One cycle in place on ``state`` with the torch path's uniforms [B, U]; the end causes [B]."""
         cause = torch.zeros(self.batch, dtype=torch.long)
-        _split(
-            K.cycle,
-            self.batch,
+        K.cycle(
             *self.arrays(state),
             actions.numpy(),
             active.numpy(),
@@ -171,6 +172,7 @@ class CompiledCycle:
             self.tabs,
             self.grid,
             cause.numpy(),
+            _parts(self.batch, True),
         )
         return cause
 
@@ -181,9 +183,7 @@ class CompiledCycle:
         kickable = torch.empty(self.batch, dtype=torch.bool)
         must = torch.empty(self.batch, dtype=torch.bool)
         obs = torch.empty(self.batch, self.config.num_state_vars, dtype=torch.float32)
-        _split(
-            K.decisions,
-            self.batch,
+        K.decisions(
             a[0],
             a[2],
             a[9],
@@ -199,6 +199,7 @@ class CompiledCycle:
             kickable.numpy(),
             must.numpy(),
             obs.numpy(),
+            _parts(self.batch),
         )
         return holder, kickable, must, obs
 
@@ -246,9 +247,9 @@ class CompiledCycle:
         common = (*self.arrays(state), self.rng, actions, first, running)
         tail = (self.prm, self.ip, self.tabs, self.grid, cycles, cause)
         if sync == "all":
-            ok = sum(_split(K.advance_fields, self.batch, *common, restart, max_cycles, *tail)) == 0
+            ok = K.advance_fields(*common, restart, max_cycles, *tail, _parts(self.batch, True)) == 0
         else:
-            ok = K.advance_any(*common, max_cycles, *tail)
+            ok = K.advance_any(*common, max_cycles, *tail, _parts(self.batch, True))
         if not ok:
             raise RuntimeError("keepaway: no decision within max_cycles_per_step cycles")
 
@@ -292,7 +293,7 @@ class CompiledCycle:
         """A new episode on the ``mask`` [B] fields (bool numpy), each drawn from its own stream, in
         place; the other fields are untouched."""
         a = self.arrays(state)
-        _split(K.reset_fields, self.batch, *a[:9], *a[11:], self.rng, mask, self.prm, self.ip)
+        K.reset_fields(*a[:9], *a[11:], self.rng, mask, self.prm, self.ip, _parts(self.batch))
 
     def env_outputs(
         self,
@@ -308,9 +309,7 @@ class CompiledCycle:
         """KeepawayEnv's outputs after a step or a reset of ``fields``, in place (see
         ``cycle_numba.env_outputs``; ``outputs`` in the env's ``_OUTPUT_KEYS`` order)."""
         a = self.arrays(state)
-        _split(
-            K.env_outputs,
-            self.batch,
+        K.env_outputs(
             a[0],
             a[2],
             a[4],
@@ -330,6 +329,7 @@ class CompiledCycle:
             *outputs,
             done,
             reward,
+            _parts(self.batch),
         )
 
     def play(
@@ -342,9 +342,7 @@ class CompiledCycle:
         durations = torch.zeros(self.batch, episodes_per_field, dtype=torch.long)
         causes = torch.zeros(self.batch, episodes_per_field, dtype=torch.long)
         played = torch.zeros(self.batch, dtype=torch.long)
-        totals = _split(
-            K.play,
-            self.batch,
+        total = K.play(
             *self.arrays(state),
             self.rng,
             POLICY_CODES[policy],
@@ -356,8 +354,9 @@ class CompiledCycle:
             self.ip,
             self.tabs,
             self.grid,
+            _parts(self.batch, True),
         )
-        return durations, causes, played, int(sum(totals))
+        return durations, causes, played, int(total)
 
     def uniform_count(self) -> int:
         """Uniforms per field and cycle (see ``cycle_numba.uniform_count``)."""

@@ -13,8 +13,9 @@ single cycle can be compared with torch's; the multi-cycle kernels (:func:`advan
 :func:`advance_any`, :func:`play`) draw from one splitmix64 generator per field (``rng`` [B]), so
 a field's play does not depend on the batch size, the thread count or the other fields.
 
-The entry points run a range of fields without the GIL, so that threads can share a batch
-(compiled_cycle.py splits it; numba's ``prange`` crashed LLVM on these kernels).
+The entry points split the fields into ``parts`` contiguous ranges, one per thread (numba's ``prange``
+over the ranges; compiled_cycle.py picks ``parts``): OpenMP's workers take a range in microseconds, where a
+Python thread pool's hand-off cost 75-150 us on this VM, which ate the gain of splitting one cycle.
 """
 
 from __future__ import annotations
@@ -66,6 +67,7 @@ SEE_CYCLES = 3
 _F = numba.njit(cache=True, _nrt=False, error_model="numpy")
 _FA = numba.njit(cache=True, error_model="numpy")
 _FI = numba.njit(cache=True, _nrt=False, error_model="numpy", inline="always")
+_PAR = numba.njit(cache=True, nogil=True, parallel=True)  # the entry points: fields split over threads
 
 
 @_F
@@ -1158,7 +1160,7 @@ def _fill(rng, b, u):
 # ---------------------------------------------------------------------------- entry points
 
 
-@numba.njit(cache=True, nogil=True)
+@_PAR
 def cycle(
     pos: np.ndarray,
     vel: np.ndarray,
@@ -1182,41 +1184,42 @@ def cycle(
     tabs: np.ndarray,
     grid: np.ndarray,
     cause_out: np.ndarray,
-    lo: int,
-    hi: int,
+    parts: int,
 ) -> None:
-    """One cycle on the ``active`` fields ``lo .. hi - 1``, in place, with the torch path's uniforms
-    ``u`` [B, U]."""
-    scr = scratch(ip, grid)
-    for b in range(lo, hi):
-        cause_out[b] = 0
-        if active[b]:
-            cause_out[b] = _cycle(
-                b,
-                pos,
-                vel,
-                body,
-                counter,
-                ep,
-                last_dec,
-                prev_holder,
-                pass_target,
-                action_start,
-                clock,
-                phase,
-                spos,
-                svel,
-                sbody,
-                actions[b],
-                u[b],
-                prm,
-                ip,
-                tabs,
-                scr,
-            )
+    """One cycle on the ``active`` fields, in place, with the torch path's uniforms ``u`` [B, U]; the
+    fields split into ``parts`` ranges, one per thread (as in every entry point below)."""
+    batch = pos.shape[0]
+    for p in numba.prange(parts):
+        scr = scratch(ip, grid)
+        for b in range(batch * p // parts, batch * (p + 1) // parts):
+            cause_out[b] = 0
+            if active[b]:
+                cause_out[b] = _cycle(
+                    b,
+                    pos,
+                    vel,
+                    body,
+                    counter,
+                    ep,
+                    last_dec,
+                    prev_holder,
+                    pass_target,
+                    action_start,
+                    clock,
+                    phase,
+                    spos,
+                    svel,
+                    sbody,
+                    actions[b],
+                    u[b],
+                    prm,
+                    ip,
+                    tabs,
+                    scr,
+                )
 
 
-@numba.njit(cache=True, nogil=True)
+@_PAR
 def decisions(
     pos: np.ndarray,
     body: np.ndarray,
@@ -1233,28 +1236,29 @@ def decisions(
     kickable_out: np.ndarray,
     must_out: np.ndarray,
     obs_out: np.ndarray,
-    lo: int,
-    hi: int,
+    parts: int,
 ) -> None:
-    """The decision (holder, kickable, must decide) of fields ``lo .. hi - 1`` and their holder's
+    """The decision (holder, kickable, must decide) of every field and its holder's
     state variables."""
-    n, m = ip[N], ip[M]
-    for b in range(lo, hi):
-        h, k, must = _decision(
-            b, pos, clock, phase, spos, pass_target, prev_holder, ep, action_start, prm, ip
-        )
-        holder_out[b], kickable_out[b], must_out[b] = h, k, must
-        kpos = np.empty((n, 2))
-        tpos = np.empty((m, 2))
-        order = np.empty(n - 1, dtype=np.int64)
-        obs = np.empty(obs_out.shape[1])
-        _view(b, h, pos, body, spos, ip, kpos, tpos)
-        _state_vars(kpos, tpos, h, order, obs)
-        for i in range(obs.shape[0]):
-            obs_out[b, i] = obs[i]
+    batch = pos.shape[0]
+    for p in numba.prange(parts):
+        n, m = ip[N], ip[M]
+        for b in range(batch * p // parts, batch * (p + 1) // parts):
+            h, k, must = _decision(
+                b, pos, clock, phase, spos, pass_target, prev_holder, ep, action_start, prm, ip
+            )
+            holder_out[b], kickable_out[b], must_out[b] = h, k, must
+            kpos = np.empty((n, 2))
+            tpos = np.empty((m, 2))
+            order = np.empty(n - 1, dtype=np.int64)
+            obs = np.empty(obs_out.shape[1])
+            _view(b, h, pos, body, spos, ip, kpos, tpos)
+            _state_vars(kpos, tpos, h, order, obs)
+            for i in range(obs.shape[0]):
+                obs_out[b, i] = obs[i]
 
 
-@numba.njit(cache=True, nogil=True)
+@_PAR
 def advance_fields(
     pos: np.ndarray,
     vel: np.ndarray,
@@ -1282,89 +1286,90 @@ def advance_fields(
     grid: np.ndarray,
     cycles_out: np.ndarray,
     cause_out: np.ndarray,
-    lo: int,
-    hi: int,
+    parts: int,
 ) -> int:
-    """Each ``running`` field of ``lo .. hi - 1`` on its own up to its holder's next decision: a first
+    """Each ``running`` field on its own up to its holder's next decision: a first
     cycle with
     ``actions`` where ``first``, then cycles until the holder must decide or the episode ends
     (restarted and played on where ``restart``). ``cycles_out`` counts the cycles, ``cause_out``
     the end cause (0 where none). Returns the number of fields that hit ``max_cycles``."""
-    stuck = 0
-    count = uniform_count(ip)
-    scr = scratch(ip, grid)
-    u = np.empty(count)
-    for b in range(lo, hi):
-        cycles_out[b] = 0
-        cause_out[b] = 0
-        if not running[b]:
-            continue
-        go = first[b]
-        done = False
-        for _ in range(max_cycles + 1):
-            if not go:
-                _, _, must = _decision(
-                    b, pos, clock, phase, spos, pass_target, prev_holder, ep, action_start, prm, ip
-                )
-                if must:
-                    done = True
-                    break
-            _fill(rng, b, u)
-            cause = _cycle(
-                b,
-                pos,
-                vel,
-                body,
-                counter,
-                ep,
-                last_dec,
-                prev_holder,
-                pass_target,
-                action_start,
-                clock,
-                phase,
-                spos,
-                svel,
-                sbody,
-                actions[b] if go else 0,
-                u,
-                prm,
-                ip,
-                tabs,
-                scr,
-            )
-            go = False
-            cycles_out[b] += 1
-            if cause != 0:
-                if restart:
-                    _reset_field(
-                        b,
-                        pos,
-                        vel,
-                        body,
-                        counter,
-                        ep,
-                        last_dec,
-                        prev_holder,
-                        pass_target,
-                        action_start,
-                        spos,
-                        svel,
-                        sbody,
-                        rng,
-                        prm,
-                        ip,
+    batch = pos.shape[0]
+    stuck = np.zeros(parts, dtype=np.int64)
+    for p in numba.prange(parts):
+        count = uniform_count(ip)
+        scr = scratch(ip, grid)
+        u = np.empty(count)
+        for b in range(batch * p // parts, batch * (p + 1) // parts):
+            cycles_out[b] = 0
+            cause_out[b] = 0
+            if not running[b]:
+                continue
+            go = first[b]
+            done = False
+            for _ in range(max_cycles + 1):
+                if not go:
+                    _, _, must = _decision(
+                        b, pos, clock, phase, spos, pass_target, prev_holder, ep, action_start, prm, ip
                     )
-                else:
-                    cause_out[b] = cause
-                    done = True
-                    break
-        if not done:
-            stuck += 1
-    return stuck
+                    if must:
+                        done = True
+                        break
+                _fill(rng, b, u)
+                cause = _cycle(
+                    b,
+                    pos,
+                    vel,
+                    body,
+                    counter,
+                    ep,
+                    last_dec,
+                    prev_holder,
+                    pass_target,
+                    action_start,
+                    clock,
+                    phase,
+                    spos,
+                    svel,
+                    sbody,
+                    actions[b] if go else 0,
+                    u,
+                    prm,
+                    ip,
+                    tabs,
+                    scr,
+                )
+                go = False
+                cycles_out[b] += 1
+                if cause != 0:
+                    if restart:
+                        _reset_field(
+                            b,
+                            pos,
+                            vel,
+                            body,
+                            counter,
+                            ep,
+                            last_dec,
+                            prev_holder,
+                            pass_target,
+                            action_start,
+                            spos,
+                            svel,
+                            sbody,
+                            rng,
+                            prm,
+                            ip,
+                        )
+                    else:
+                        cause_out[b] = cause
+                        done = True
+                        break
+            if not done:
+                stuck[p] += 1
+    return stuck.sum()
 
 
-@numba.njit(cache=True, nogil=True)
+@_PAR
 def _any_cycle(
     pos: np.ndarray,
     vel: np.ndarray,
@@ -1390,46 +1395,50 @@ def _any_cycle(
     grid: np.ndarray,
     cause_out: np.ndarray,
     must_out: np.ndarray,
+    parts: int,
 ) -> None:
     """One ``sync="any"`` cycle of the ``running`` fields (``actions`` where ``go``): each one's end cause
-    and, where it runs on, whether its holder must decide."""
-    count = uniform_count(ip)
-    scr = scratch(ip, grid)
-    u = np.empty(count)
-    for b in range(pos.shape[0]):
-        must_out[b] = False
-        if not running[b]:
-            continue
-        _fill(rng, b, u)
-        cause = _cycle(
-            b,
-            pos,
-            vel,
-            body,
-            counter,
-            ep,
-            last_dec,
-            prev_holder,
-            pass_target,
-            action_start,
-            clock,
-            phase,
-            spos,
-            svel,
-            sbody,
-            actions[b] if go[b] else 0,
-            u,
-            prm,
-            ip,
-            tabs,
-            scr,
-        )
-        cause_out[b] = cause
-        if cause == 0:
-            _, _, must = _decision(
-                b, pos, clock, phase, spos, pass_target, prev_holder, ep, action_start, prm, ip
+    and, where it runs on, whether its holder must decide; the fields split into ``parts`` ranges, one
+    per thread."""
+    batch = pos.shape[0]
+    for p in numba.prange(parts):
+        count = uniform_count(ip)
+        scr = scratch(ip, grid)
+        u = np.empty(count)
+        for b in range(batch * p // parts, batch * (p + 1) // parts):
+            must_out[b] = False
+            if not running[b]:
+                continue
+            _fill(rng, b, u)
+            cause = _cycle(
+                b,
+                pos,
+                vel,
+                body,
+                counter,
+                ep,
+                last_dec,
+                prev_holder,
+                pass_target,
+                action_start,
+                clock,
+                phase,
+                spos,
+                svel,
+                sbody,
+                actions[b] if go[b] else 0,
+                u,
+                prm,
+                ip,
+                tabs,
+                scr,
             )
-            must_out[b] = must
+            cause_out[b] = cause
+            if cause == 0:
+                _, _, must = _decision(
+                    b, pos, clock, phase, spos, pass_target, prev_holder, ep, action_start, prm, ip
+                )
+                must_out[b] = must
 
 
 @numba.njit(cache=True)
@@ -1459,9 +1468,11 @@ def advance_any(
     grid: np.ndarray,
     cycles_out: np.ndarray,
     cause_out: np.ndarray,
+    parts: int,
 ) -> bool:
     """``sync="any"``: the ``running`` fields in lock-step (a first cycle with ``actions`` where
-    ``first``) until one of them must decide or ends. Returns False if ``max_cycles`` ran out."""
+    ``first``) until one of them must decide or ends, each cycle split into ``parts`` field ranges.
+    Returns False if ``max_cycles`` ran out."""
     batch = pos.shape[0]
     alive = running.copy()
     go = first.copy()
@@ -1511,6 +1522,7 @@ def advance_any(
             grid,
             step_cause,
             must,
+            parts,
         )
         ended = False
         for b in range(batch):
@@ -1527,7 +1539,7 @@ def advance_any(
     return False
 
 
-@numba.njit(cache=True, nogil=True)
+@_PAR
 def play(
     pos: np.ndarray,
     vel: np.ndarray,
@@ -1553,69 +1565,117 @@ def play(
     ip: np.ndarray,
     tabs: np.ndarray,
     grid: np.ndarray,
-    lo: int,
-    hi: int,
+    parts: int,
 ) -> int:
     """Benchmark keepers (``policy`` 0 hold, 1 random, 2 hand-coded) deciding inside each cycle, on
-    every field of ``lo .. hi - 1`` until it has played ``durations.shape[1]`` episodes or
+    every field until it has played ``durations.shape[1]`` episodes or
     ``max_cycles`` cycles; each
     ended episode's length and cause are stored, and the next one starts at once. Returns the
     field-cycles simulated."""
-    n, m = ip[N], ip[M]
-    count = uniform_count(ip)
-    quota = durations.shape[1]
-    total = 0
-    scr = scratch(ip, grid)
-    u = np.empty(count)
-    kpos = np.empty((n, 2))
-    tpos = np.empty((m, 2))
-    order = np.empty(n - 1, dtype=np.int64)
-    obs = np.empty(4 * n + 2 * m - 3, dtype=np.float32)
-    obs64 = np.empty(4 * n + 2 * m - 3)
-    for b in range(lo, hi):
-        for _ in range(max_cycles):
-            if played[b] >= quota:
-                break
-            action = 0
-            if policy != 0:
-                h, _, must = _decision(
-                    b, pos, clock, phase, spos, pass_target, prev_holder, ep, action_start, prm, ip
+    batch = pos.shape[0]
+    total = np.zeros(parts, dtype=np.int64)
+    for p in numba.prange(parts):
+        n, m = ip[N], ip[M]
+        count = uniform_count(ip)
+        quota = durations.shape[1]
+        scr = scratch(ip, grid)
+        u = np.empty(count)
+        kpos = np.empty((n, 2))
+        tpos = np.empty((m, 2))
+        order = np.empty(n - 1, dtype=np.int64)
+        obs = np.empty(4 * n + 2 * m - 3, dtype=np.float32)
+        obs64 = np.empty(4 * n + 2 * m - 3)
+        for b in range(batch * p // parts, batch * (p + 1) // parts):
+            for _ in range(max_cycles):
+                if played[b] >= quota:
+                    break
+                action = 0
+                if policy != 0:
+                    h, _, must = _decision(
+                        b, pos, clock, phase, spos, pass_target, prev_holder, ep, action_start, prm, ip
+                    )
+                    if must:
+                        _view(b, h, pos, body, spos, ip, kpos, tpos)
+                        _state_vars(kpos, tpos, h, order, obs64)
+                        for i in range(obs.shape[0]):
+                            obs[i] = obs64[i]
+                        action = _policy_action(policy, obs, rng, b, ip)
+                _fill(rng, b, u)
+                cause = _cycle(
+                    b,
+                    pos,
+                    vel,
+                    body,
+                    counter,
+                    ep,
+                    last_dec,
+                    prev_holder,
+                    pass_target,
+                    action_start,
+                    clock,
+                    phase,
+                    spos,
+                    svel,
+                    sbody,
+                    action,
+                    u,
+                    prm,
+                    ip,
+                    tabs,
+                    scr,
                 )
-                if must:
-                    _view(b, h, pos, body, spos, ip, kpos, tpos)
-                    _state_vars(kpos, tpos, h, order, obs64)
-                    for i in range(obs.shape[0]):
-                        obs[i] = obs64[i]
-                    action = _policy_action(policy, obs, rng, b, ip)
-            _fill(rng, b, u)
-            cause = _cycle(
-                b,
-                pos,
-                vel,
-                body,
-                counter,
-                ep,
-                last_dec,
-                prev_holder,
-                pass_target,
-                action_start,
-                clock,
-                phase,
-                spos,
-                svel,
-                sbody,
-                action,
-                u,
-                prm,
-                ip,
-                tabs,
-                scr,
-            )
-            total += 1
-            if cause != 0:
-                durations[b, played[b]] = ep[b]
-                causes[b, played[b]] = cause
-                played[b] += 1
+                total[p] += 1
+                if cause != 0:
+                    durations[b, played[b]] = ep[b]
+                    causes[b, played[b]] = cause
+                    played[b] += 1
+                    _reset_field(
+                        b,
+                        pos,
+                        vel,
+                        body,
+                        counter,
+                        ep,
+                        last_dec,
+                        prev_holder,
+                        pass_target,
+                        action_start,
+                        spos,
+                        svel,
+                        sbody,
+                        rng,
+                        prm,
+                        ip,
+                    )
+    return total.sum()
+
+
+@_PAR
+def reset_fields(
+    pos: np.ndarray,
+    vel: np.ndarray,
+    body: np.ndarray,
+    counter: np.ndarray,
+    ep: np.ndarray,
+    last_dec: np.ndarray,
+    prev_holder: np.ndarray,
+    pass_target: np.ndarray,
+    action_start: np.ndarray,
+    spos: np.ndarray,
+    svel: np.ndarray,
+    sbody: np.ndarray,
+    rng: np.ndarray,
+    mask: np.ndarray,
+    prm: np.ndarray,
+    ip: np.ndarray,
+    parts: int,
+) -> None:
+    """KeepawaySimulator.reset on the ``mask`` fields: a new episode drawn from
+    each field's own generator, in place (the other fields, and every clock, stay as they are)."""
+    batch = pos.shape[0]
+    for p in numba.prange(parts):
+        for b in range(batch * p // parts, batch * (p + 1) // parts):
+            if mask[b]:
                 _reset_field(
                     b,
                     pos,
@@ -1634,55 +1694,9 @@ def play(
                     prm,
                     ip,
                 )
-    return total
 
 
-@numba.njit(cache=True, nogil=True)
-def reset_fields(
-    pos: np.ndarray,
-    vel: np.ndarray,
-    body: np.ndarray,
-    counter: np.ndarray,
-    ep: np.ndarray,
-    last_dec: np.ndarray,
-    prev_holder: np.ndarray,
-    pass_target: np.ndarray,
-    action_start: np.ndarray,
-    spos: np.ndarray,
-    svel: np.ndarray,
-    sbody: np.ndarray,
-    rng: np.ndarray,
-    mask: np.ndarray,
-    prm: np.ndarray,
-    ip: np.ndarray,
-    lo: int,
-    hi: int,
-) -> None:
-    """KeepawaySimulator.reset on the ``mask`` fields of ``lo .. hi - 1``: a new episode drawn from
-    each field's own generator, in place (the other fields, and every clock, stay as they are)."""
-    for b in range(lo, hi):
-        if mask[b]:
-            _reset_field(
-                b,
-                pos,
-                vel,
-                body,
-                counter,
-                ep,
-                last_dec,
-                prev_holder,
-                pass_target,
-                action_start,
-                spos,
-                svel,
-                sbody,
-                rng,
-                prm,
-                ip,
-            )
-
-
-@numba.njit(cache=True, nogil=True)
+@_PAR
 def env_outputs(
     pos: np.ndarray,
     body: np.ndarray,
@@ -1710,57 +1724,58 @@ def env_outputs(
     deciding_out: np.ndarray,
     done: np.ndarray,
     reward_out: np.ndarray,
-    lo: int,
-    hi: int,
+    parts: int,
 ) -> None:
-    """KeepawayEnv's outputs of fields ``lo .. hi - 1``, in place, after a step (``stepping``: the
+    """KeepawayEnv's outputs, in place, after a step (``stepping``: the
     ``fields`` were alive and advanced, ``cause`` [B] how they ended, ``cycles`` [B] how long they ran;
     ``reward_out`` [B] the step's reward) or after a reset of the ``fields``: the observation, keeper,
     action mask and episode cycles of those fields, their end cause, end rewards and step cycles, the
     ``done`` flags and, for every field, whether it decides now."""
-    n, m = ip[N], ip[M]
-    kpos = np.empty((n, 2))
-    tpos = np.empty((m, 2))
-    order = np.empty(n - 1, dtype=np.int64)
-    obs = np.empty(obs_out.shape[1])
-    for b in range(lo, hi):
-        h, _, must = _decision(
-            b, pos, clock, phase, spos, pass_target, prev_holder, ep, action_start, prm, ip
-        )
-        here = fields[b]
-        if stepping:
-            ended = cause[b] != 0
-            reward = 0
-            if ended:
-                latest = -1
-                for k in range(n):
-                    latest = max(latest, last_dec[b, k])
-                reward = ep[b] - latest if latest >= 0 else ep[b]
-                done[b] = True
-                cause_out[b] = cause[b]
-                for k in range(n):
-                    end_rewards_out[b, k] = ep[b] - last_dec[b, k] if last_dec[b, k] >= 0 else 0
+    batch = pos.shape[0]
+    for p in numba.prange(parts):
+        n, m = ip[N], ip[M]
+        kpos = np.empty((n, 2))
+        tpos = np.empty((m, 2))
+        order = np.empty(n - 1, dtype=np.int64)
+        obs = np.empty(obs_out.shape[1])
+        for b in range(batch * p // parts, batch * (p + 1) // parts):
+            h, _, must = _decision(
+                b, pos, clock, phase, spos, pass_target, prev_holder, ep, action_start, prm, ip
+            )
+            here = fields[b]
+            if stepping:
+                ended = cause[b] != 0
+                reward = 0
+                if ended:
+                    latest = -1
+                    for k in range(n):
+                        latest = max(latest, last_dec[b, k])
+                    reward = ep[b] - latest if latest >= 0 else ep[b]
+                    done[b] = True
+                    cause_out[b] = cause[b]
+                    for k in range(n):
+                        end_rewards_out[b, k] = ep[b] - last_dec[b, k] if last_dec[b, k] >= 0 else 0
+                elif here:
+                    if must and last_dec[b, h] >= 0:
+                        reward = ep[b] - last_dec[b, h]
+                    cause_out[b] = 0
+                    for k in range(n):
+                        end_rewards_out[b, k] = 0.0
+                reward_out[b] = reward
+                step_cycles_out[b] = cycles[b] if here else 0
             elif here:
-                if must and last_dec[b, h] >= 0:
-                    reward = ep[b] - last_dec[b, h]
                 cause_out[b] = 0
                 for k in range(n):
                     end_rewards_out[b, k] = 0.0
-            reward_out[b] = reward
-            step_cycles_out[b] = cycles[b] if here else 0
-        elif here:
-            cause_out[b] = 0
-            for k in range(n):
-                end_rewards_out[b, k] = 0.0
-            step_cycles_out[b] = 0
-            done[b] = False
-        if here:
-            _view(b, h, pos, body, spos, ip, kpos, tpos)
-            _state_vars(kpos, tpos, h, order, obs)
-            for i in range(obs.shape[0]):
-                obs_out[b, i] = obs[i]
-            keeper_out[b] = h
-            for a in range(mask_out.shape[1]):
-                mask_out[b, a] = True
-            ep_out[b] = ep[b]
-        deciding_out[b] = must and not done[b]
+                step_cycles_out[b] = 0
+                done[b] = False
+            if here:
+                _view(b, h, pos, body, spos, ip, kpos, tpos)
+                _state_vars(kpos, tpos, h, order, obs)
+                for i in range(obs.shape[0]):
+                    obs_out[b, i] = obs[i]
+                keeper_out[b] = h
+                for a in range(mask_out.shape[1]):
+                    mask_out[b, a] = True
+                ep_out[b] = ep[b]
+            deciding_out[b] = must and not done[b]
