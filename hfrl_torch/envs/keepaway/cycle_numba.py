@@ -1122,7 +1122,7 @@ def _reset_field(
 
 @_FA
 def scratch(ip, grid):
-    """One thread's work arrays for :func:`_cycle`, made once per kernel call (indices ``S_*``):
+    """One thread's work arrays for :func:`_cycle`, made once per range of a kernel call (indices ``S_*``):
     commands [P, 3], new positions, velocities and bodies, accelerations, collisions, the keepers'
     interception cycles and points, the takers' points, a holder's view and teammate order, and
     GetOpen's rows (``O_*``), its grid's x and y among them (contiguous: its loops vectorise, 5x
