@@ -13,3 +13,10 @@ def thread_count(rows: int, min_rows_per_thread: int) -> int:
     if rows < 2 * min_rows_per_thread:
         return 1
     return max(1, min(numba.get_num_threads(), rows // min_rows_per_thread))
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def part_range(rows: int, part: int, parts: int) -> tuple[int, int]:
+    """Rows ``lo .. hi - 1`` of range ``part`` when ``rows`` rows split into ``parts`` contiguous ranges
+    (inside a kernel's ``prange`` over the parts)."""
+    return rows * part // parts, rows * (part + 1) // parts

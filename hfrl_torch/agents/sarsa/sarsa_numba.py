@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from hfrl_torch.agents.sarsa.sarsa import SarsaLambda
-from hfrl_torch.common.threads import thread_count
+from hfrl_torch.common.threads import part_range, thread_count
 from hfrl_torch.models.tile_coding import TileCoding
 from hfrl_torch.models.tile_coding_numba import table_sums, tile_indices, tile_row, tile_sum
 
@@ -202,91 +202,15 @@ def _replace_traces(
         value[c] = 0.0
 
 
-@_JIT
-def decide_values(
-    weight: np.ndarray,
-    tables: np.ndarray,
-    learners: np.ndarray,
-    tiles: np.ndarray,
-    q: np.ndarray,
-    choose: np.ndarray,
-    mask: np.ndarray,
-    reward: np.ndarray,
-    tie: np.ndarray,
-    noise: np.ndarray,
-    draw: np.ndarray,
-    params: np.ndarray,
-    explore: bool,
-    skip_matching: bool,
-    last_action: np.ndarray,
-    q_last: np.ndarray,
-    trace_index: np.ndarray,
-    trace_value: np.ndarray,
-    action: np.ndarray,
-    chosen: np.ndarray,
-) -> bool:
-    """``SarsaLambda.decide`` of rows ``learners`` [M] from their ``tiles`` [M, A, N] and ``q`` [M, A] (the
-    caller's, for ``decide(values=..., choose_by=...)``):
-    choose (by ``choose`` [M, A]), update every table from the same weights, then Q_LastAction and traces;
-    False (and nothing changed) when the rows do not name distinct learners."""
-    if not _distinct(learners):
-        return False
-    m = learners.shape[0]
-    delta = np.empty(m, dtype=q.dtype)
-    choose_phase(learners, q, choose, mask, reward, tie, noise, draw, params, explore,
-                 last_action, q_last, action, delta, 0, m)  # lines 9-10, 16  # fmt: skip
-    update_phase(weight, tables, learners, params, last_action, trace_index, trace_value,
-                 delta, 1, 0, 1)  # line 17, every row from the weights before this call  # fmt: skip
-    finish_phase(weight, tables, learners, tiles, q, mask, params, skip_matching, last_action,
-                 q_last, trace_index, trace_value, action, chosen, 0, m)  # lines 3, 18-25  # fmt: skip
-    return True
-
-
-@_JIT
-def decide_states(
-    weight: np.ndarray,
-    widths: np.ndarray,
-    shape: np.ndarray,
-    tables: np.ndarray,
-    learners: np.ndarray,
-    obs: np.ndarray,
-    mask: np.ndarray,
-    reward: np.ndarray,
-    tie: np.ndarray,
-    noise: np.ndarray,
-    draw: np.ndarray,
-    params: np.ndarray,
-    explore: bool,
-    skip_matching: bool,
-    last_action: np.ndarray,
-    q_last: np.ndarray,
-    trace_index: np.ndarray,
-    trace_value: np.ndarray,
-    action: np.ndarray,
-    chosen: np.ndarray,
-) -> bool:
-    """Tiles and Q of the rows' states ``obs`` [M, F] (``shape``: tilings, actions, size), then
-    :func:`decide_values` choosing by Q, in one call."""
-    m = obs.shape[0]
-    tiles = np.empty((m, shape[1], widths.shape[0] * shape[0]), dtype=np.int64)
-    q = np.empty((m, shape[1]), dtype=weight.dtype)
-    states_phase(weight, widths, shape, tables, learners, obs, tiles, q, 0, m)
-    return decide_values(
-        weight, tables, learners, tiles, q, q, mask, reward, tie, noise, draw, params, explore,
-        skip_matching, last_action, q_last, trace_index, trace_value, action, chosen,
-    )  # fmt: skip
-
-
-# The decision's phases over row ranges: :func:`decide_values` runs each once over all rows; with a second
-# thread (``numba.get_num_threads()`` > 1 and enough rows) ``SarsaLambdaNumba.decide`` calls
-# :func:`decide_parts`, which splits them in ``prange`` regions: the reads, then the traced updates split by
-# weight table (each table's adds keep their row order), then the new Q_LastAction and traces, bit for bit
-# as on one thread. OpenMP's workers take a region in a few microseconds; the Python thread pool this
+# The decision in phases over row ranges, split over ``parts`` threads in ``prange`` regions (one range, so
+# no split, where ``thread_count`` gives one thread): the reads by row range, then the traced updates split
+# by weight table (each table's adds keep their row order), then the new Q_LastAction and traces, bit for
+# bit as on one thread. OpenMP's workers take a region in a few microseconds; the Python thread pool this
 # replaced cost 75-150 us a hand-off on this VM, three times a decision.
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def decide_parts(
+def decide_rows(
     parts: int,
     weight: np.ndarray,
     widths: np.ndarray,
@@ -312,25 +236,29 @@ def decide_parts(
     trace_value: np.ndarray,
     action: np.ndarray,
     chosen: np.ndarray,
-) -> None:
-    """:func:`decide_states` (``with_states``: ``tiles`` and ``q`` filled from ``obs``) or
-    :func:`decide_values` of distinct learners, each phase split over ``parts`` threads: the rows'
-    reads by row range, the traced updates by weight table, bit for bit as one thread."""
+) -> bool:
+    """``SarsaLambda.decide`` of rows ``learners`` [M]: their ``tiles`` [M, A, N] and ``q`` [M, A] filled
+    from the states ``obs`` [M, F] (``with_states``; ``shape``: tilings, actions, size) or the caller's
+    (``decide(values=...)``); choose by ``choose`` [M, A], update every table from the same weights, then
+    Q_LastAction and traces. False (and nothing changed) when the rows do not name distinct learners."""
+    if not _distinct(learners):
+        return False
     m = learners.shape[0]
     if with_states:
         for p in numba.prange(parts):
-            states_phase(weight, widths, shape, tables, learners, obs, tiles, q, m * p // parts,
-                         m * (p + 1) // parts)  # fmt: skip
+            lo, hi = part_range(m, p, parts)
+            states_phase(weight, widths, shape, tables, learners, obs, tiles, q, lo, hi)
     delta = np.empty(m, dtype=weight.dtype)
     choose_phase(learners, q, choose, mask, reward, tie, noise, draw, params, explore,
-                 last_action, q_last, action, delta, 0, m)  # fmt: skip
-    for p in numba.prange(parts):
+                 last_action, q_last, action, delta, 0, m)  # lines 9-10, 16  # fmt: skip
+    for p in numba.prange(parts):  # line 17, every row from the weights before this call
         update_phase(weight, tables, learners, params, last_action, trace_index, trace_value,
                      delta, parts, p, p + 1)  # fmt: skip
-    for p in numba.prange(parts):
+    for p in numba.prange(parts):  # lines 3, 18-25
+        lo, hi = part_range(m, p, parts)
         finish_phase(weight, tables, learners, tiles, q, mask, params, skip_matching, last_action,
-                     q_last, trace_index, trace_value, action, chosen, m * p // parts,
-                     m * (p + 1) // parts)  # fmt: skip
+                     q_last, trace_index, trace_value, action, chosen, lo, hi)  # fmt: skip
+    return True
 
 
 @_JIT
@@ -552,28 +480,16 @@ class SarsaLambdaNumba(SarsaLambda):
         rows, dtype = _np(learners, torch.int64), coder.weight.dtype
         common = (_np(mask, torch.bool), _np(reward, dtype), tie, noise, draw, self._params, explore)
         state = (self._skip_matching, last_action, q_last, trace_index, trace_value, action, chosen)
-        threads = thread_count(m, MIN_ROWS_PER_THREAD)
-        if threads > 1:
-            if not _distinct(rows):
-                raise ValueError("decide: rows must name distinct learners")
-            with_states = values is None
-            if with_states:
-                tiles_np = np.empty((m, a, coder.active_tiles), dtype=np.int64)
-                q_np = np.empty((m, a), dtype=weight.dtype)
-            else:
-                tiles_np, q_np = _np(values[0], torch.int64), _np(values[1], dtype)
-            choose = q_np if choose_by is None else _np(choose_by)
-            decide_parts(threads, weight, widths, self._shape, tables, rows, _np(obs), with_states, tiles_np,
-                         q_np, choose, *common, *state)  # fmt: skip
-            self.chosen_tiles = torch.from_numpy(chosen)
-            return torch.from_numpy(action)
-        if values is None and choose_by is None:
-            ok = decide_states(weight, widths, self._shape, tables, rows, _np(obs), *common, *state)
+        with_states = values is None
+        if with_states:
+            tiles_np = np.empty((m, a, coder.active_tiles), dtype=np.int64)
+            q_np = np.empty((m, a), dtype=weight.dtype)
         else:
-            tiles, q = self.action_values(learners, obs) if values is None else values
-            q_np = _np(q, dtype)
-            choose = q_np if choose_by is None else _np(choose_by)
-            ok = decide_values(weight, tables, rows, _np(tiles, torch.int64), q_np, choose, *common, *state)
+            tiles_np, q_np = _np(values[0], torch.int64), _np(values[1], dtype)
+        choose = q_np if choose_by is None else _np(choose_by)
+        threads = thread_count(m, MIN_ROWS_PER_THREAD)
+        ok = decide_rows(threads, weight, widths, self._shape, tables, rows, _np(obs), with_states, tiles_np,
+                         q_np, choose, *common, *state)  # fmt: skip
         if not ok:
             raise ValueError("decide: rows must name distinct learners")
         self.chosen_tiles = torch.from_numpy(chosen)

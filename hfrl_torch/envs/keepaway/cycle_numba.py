@@ -25,6 +25,8 @@ import math
 import numba
 import numpy as np
 
+from hfrl_torch.common.threads import part_range
+
 PI = math.pi
 TWO_PI = 2.0 * math.pi
 DEG = math.pi / 180.0
@@ -1191,7 +1193,8 @@ def cycle(
     batch = pos.shape[0]
     for p in numba.prange(parts):
         scr = scratch(ip, grid)
-        for b in range(batch * p // parts, batch * (p + 1) // parts):
+        lo, hi = part_range(batch, p, parts)
+        for b in range(lo, hi):
             cause_out[b] = 0
             if active[b]:
                 cause_out[b] = _cycle(
@@ -1243,15 +1246,16 @@ def decisions(
     batch = pos.shape[0]
     for p in numba.prange(parts):
         n, m = ip[N], ip[M]
-        for b in range(batch * p // parts, batch * (p + 1) // parts):
+        kpos = np.empty((n, 2))
+        tpos = np.empty((m, 2))
+        order = np.empty(n - 1, dtype=np.int64)
+        obs = np.empty(obs_out.shape[1])
+        lo, hi = part_range(batch, p, parts)
+        for b in range(lo, hi):
             h, k, must = _decision(
                 b, pos, clock, phase, spos, pass_target, prev_holder, ep, action_start, prm, ip
             )
             holder_out[b], kickable_out[b], must_out[b] = h, k, must
-            kpos = np.empty((n, 2))
-            tpos = np.empty((m, 2))
-            order = np.empty(n - 1, dtype=np.int64)
-            obs = np.empty(obs_out.shape[1])
             _view(b, h, pos, body, spos, ip, kpos, tpos)
             _state_vars(kpos, tpos, h, order, obs)
             for i in range(obs.shape[0]):
@@ -1299,7 +1303,8 @@ def advance_fields(
         count = uniform_count(ip)
         scr = scratch(ip, grid)
         u = np.empty(count)
-        for b in range(batch * p // parts, batch * (p + 1) // parts):
+        lo, hi = part_range(batch, p, parts)
+        for b in range(lo, hi):
             cycles_out[b] = 0
             cause_out[b] = 0
             if not running[b]:
@@ -1405,7 +1410,8 @@ def _any_cycle(
         count = uniform_count(ip)
         scr = scratch(ip, grid)
         u = np.empty(count)
-        for b in range(batch * p // parts, batch * (p + 1) // parts):
+        lo, hi = part_range(batch, p, parts)
+        for b in range(lo, hi):
             must_out[b] = False
             if not running[b]:
                 continue
@@ -1585,7 +1591,8 @@ def play(
         order = np.empty(n - 1, dtype=np.int64)
         obs = np.empty(4 * n + 2 * m - 3, dtype=np.float32)
         obs64 = np.empty(4 * n + 2 * m - 3)
-        for b in range(batch * p // parts, batch * (p + 1) // parts):
+        lo, hi = part_range(batch, p, parts)
+        for b in range(lo, hi):
             for _ in range(max_cycles):
                 if played[b] >= quota:
                     break
@@ -1674,7 +1681,8 @@ def reset_fields(
     each field's own generator, in place (the other fields, and every clock, stay as they are)."""
     batch = pos.shape[0]
     for p in numba.prange(parts):
-        for b in range(batch * p // parts, batch * (p + 1) // parts):
+        lo, hi = part_range(batch, p, parts)
+        for b in range(lo, hi):
             if mask[b]:
                 _reset_field(
                     b,
@@ -1738,7 +1746,8 @@ def env_outputs(
         tpos = np.empty((m, 2))
         order = np.empty(n - 1, dtype=np.int64)
         obs = np.empty(obs_out.shape[1])
-        for b in range(batch * p // parts, batch * (p + 1) // parts):
+        lo, hi = part_range(batch, p, parts)
+        for b in range(lo, hi):
             h, _, must = _decision(
                 b, pos, clock, phase, spos, pass_target, prev_holder, ep, action_start, prm, ip
             )
