@@ -13,6 +13,8 @@ from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.envs.keepaway import KeepawayConfig, KeepawaySimulator, hand_coded_actions
 from hfrl_torch.envs.keepaway.params import physics_preset
 from hfrl_torch.envs.keepaway.perception import (
+    COLLISION_BALL_GAP,
+    after_collision,
     extrapolate,
     observe,
     own_truth,
@@ -21,6 +23,7 @@ from hfrl_torch.envs.keepaway.perception import (
     sees_now,
 )
 from hfrl_torch.envs.keepaway.physics import (
+    DASH_KIND,
     KICK_KIND,
     TURN_KIND,
     direction,
@@ -133,6 +136,69 @@ def test_a_ball_that_an_opponent_can_kick_is_believed_to_stop() -> None:
     _, b_vel, _ = extrapolate(*b, torch.zeros(1, 5, 2), torch.zeros(1, 5, dtype=torch.bool), 3, PHYSICS)
     assert torch.equal(b_vel[0, 0, 0], torch.zeros(2))  # keepers: a taker has it
     assert float(b_vel[0, 3, 0, 0]) > 0  # the takers' own ball keeps rolling in their model
+
+
+def _collision_case(me_vel, kind, power, sensed, ball, ball_vel, other=(-8.0, -8.0)):
+    """after_collision for keeper 0 at the origin facing +x (every other belief far away unless
+    ``other`` puts keeper 1 near): the corrected ball position and velocity in keeper 0's model."""
+    pos, vel, body = scene(
+        [ball, (0.0, 0.0), other, (5.0, 5.0), (-5.0, 6.0), (6.0, -1.0)], vel=[ball_vel] + [(0.0, 0.0)] * 5
+    )
+    vel[0, 1] = torch.tensor(me_vel)
+    belief = (pos.unsqueeze(1).repeat(1, 5, 1, 1), vel.unsqueeze(1).repeat(1, 5, 1, 1))
+    sensed_vel = vel[:, 1:].clone()
+    sensed_vel[0, 0] = torch.tensor(sensed)
+    kinds = torch.zeros(1, 5, dtype=torch.int64)
+    kinds[0, 0] = kind
+    powers = torch.zeros(1, 5)
+    powers[0, 0] = power
+    b_pos, b_vel = after_collision(
+        *belief,
+        belief[0],
+        pos[:, 1:],
+        vel[:, 1:],
+        body[:, 1:],
+        kinds,
+        powers,
+        sensed_vel,
+        body[:, 1:],
+        PHYSICS,
+    )
+    if other == (-8.0, -8.0):  # every other player is far from the ball: only keeper 0's model can change
+        torch.testing.assert_close(b_pos[0, 1:], belief[0][0, 1:])
+    torch.testing.assert_close(b_pos[0, 0, 1:], belief[0][0, 0, 1:])
+    return b_pos[0, 0, 0], b_vel[0, 0, 0]
+
+
+def test_the_world_model_moves_a_ball_the_player_ran_into() -> None:
+    """updateAgentAndBallAfterSense's collision test and updateBallForCollision, case by case."""
+    gap = COLLISION_BALL_GAP
+    # standing, no command, the believed ball inside the body, sensed speed 0: a collision
+    b, v = _collision_case((0.0, 0.0), 0, 0.0, (0.0, 0.0), (0.3, 0.0), (-1.5, 0.0))
+    torch.testing.assert_close(b, torch.tensor([gap, 0.0]))
+    torch.testing.assert_close(v, torch.tensor([0.15, 0.0]))
+    # creeping at 0.004 m/cycle, which sense_body reports as 0.00: still, so the same collision
+    b, v = _collision_case((0.004, 0.0), 0, 0.0, (0.004, 0.0), (0.3, 0.0), (-1.5, 0.0))
+    torch.testing.assert_close(b, torch.tensor([gap, 0.0]))
+    # at 0.006 m/cycle (reported 0.01) the player is not still, and the velocity did not turn
+    b, _ = _collision_case((0.006, 0.0), 0, 0.0, (0.006, 0.0), (0.3, 0.0), (-1.5, 0.0))
+    torch.testing.assert_close(b, torch.tensor([0.3, 0.0]))
+    # the same ball 0.5 m off: not inside the body and the player was not moving, so no collision
+    b, v = _collision_case((0.0, 0.0), 0, 0.0, (0.0, 0.0), (0.5, 0.0), (-1.5, 0.0))
+    torch.testing.assert_close(b, torch.tensor([0.5, 0.0]))
+    # dashing at 100 (predicted to 0.6 m/cycle, then 0.24 after decay) but sensed at -0.02: the
+    # velocity turned and shrank, and the ball is within 1.585 m of the predicted position (0.6, 0)
+    b, v = _collision_case((0.0, 0.0), DASH_KIND, 100.0, (-0.02, 0.0), (1.2, 0.1), (-1.0, 0.0))
+    at = torch.tensor([0.6, 0.0]) + gap * torch.nn.functional.normalize(torch.tensor([0.6, 0.1]), dim=0)
+    torch.testing.assert_close(b, at)
+    torch.testing.assert_close(v, torch.tensor([0.1, 0.0]))
+    # the same, but sensed at 0.2 m/cycle forward: no collision
+    b, _ = _collision_case((0.0, 0.0), DASH_KIND, 100.0, (0.2, 0.0), (1.2, 0.1), (-1.0, 0.0))
+    torch.testing.assert_close(b, torch.tensor([1.2, 0.1]))
+    # a kick leaves the player where it was; with another player nearer than the ball, the world
+    # model blames that player and keeps the ball
+    b, _ = _collision_case((0.0, 0.0), KICK_KIND, 50.0, (0.0, 0.0), (0.3, 0.0), (-1.5, 0.0), other=(0.2, 0.0))
+    torch.testing.assert_close(b, torch.tensor([0.3, 0.0]))
 
 
 def test_sees_come_in_two_of_every_three_cycles_and_beliefs_follow_them() -> None:

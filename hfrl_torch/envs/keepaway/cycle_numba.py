@@ -26,6 +26,7 @@ import numba
 import numpy as np
 
 from hfrl_torch.common.threads import part_range
+from hfrl_torch.envs.keepaway.perception import COLLISION_BALL_GAP, SENSE_SPEED_QSTEP, STILL
 
 PI = math.pi
 TWO_PI = 2.0 * math.pi
@@ -713,6 +714,45 @@ def _extrapolate(b, p, kax, kay, kicked, spos, svel, prm, ip):
 
 
 @_F
+def _after_collision(b, p, pos, vel, body, cmd, new_vel, new_body, nearest, spos, svel, prm):
+    """perception.after_collision for observer ``p``, in place: ``pos``, ``vel``, ``body`` still hold
+    the state before the cycle, ``new_vel`` [O, 2] and ``new_body`` [O] the one after it (reported as
+    sense_body does); ``nearest`` is the distance from the
+    observer to the nearest other player in its belief before the extrapolation."""
+    o = 1 + p
+    kind = np.int64(cmd[p, 0])
+    px, py, vx, vy = pos[b, o, 0], pos[b, o, 1], vel[b, o, 0], vel[b, o, 1]
+    if kind in (DASH, TURN):
+        if kind == DASH:
+            pw = min(max(cmd[p, 1], prm[MIN_DASH]), prm[MAX_POWER]) * prm[DASH_RATE]
+            vx, vy = vx + pw * np.cos(body[b, o]), vy + pw * np.sin(body[b, o])
+        scale = min(prm[P_SPEED] / max(_hyp(vx, vy), 1e-12), 1.0)
+        vx, vy = vx * scale, vy * scale
+        px, py = px + vx, py + vy
+        vx, vy = vx * prm[P_DECAY], vy * prm[P_DECAY]
+    nb = new_body[o]
+    sensed = np.rint(_hyp(new_vel[o, 0], new_vel[o, 1]) / SENSE_SPEED_QSTEP) * SENSE_SPEED_QSTEP
+    heading = nb + _qdir(_wrap(np.arctan2(new_vel[o, 1], new_vel[o, 0]) - nb))
+    sx, sy = sensed * np.cos(heading), sensed * np.sin(heading)
+    bx, by = spos[b, p, 0, 0], spos[b, p, 0, 1]
+    d_ball = _hyp(bx - px, by - py)
+    predicted = _hyp(vx, vy)
+    still = sensed < STILL
+    turned = ((vx > 0) != (sx > 0) or abs(vx) < 0.08) and ((vy > 0) != (sy > 0) or abs(vy) < 0.08)
+    collided = (
+        (still and predicted > 0.01 and d_ball < 0.8)
+        or (still and d_ball < prm[P_SIZE] + prm[B_SIZE])
+        or (d_ball < prm[KD] + 0.5 and not still and turned and sensed < 0.25 * predicted)
+    )
+    if collided and d_ball < nearest:
+        a = np.arctan2(by - py, bx - px)
+        spos[b, p, 0, 0] = px + COLLISION_BALL_GAP * np.cos(a)
+        spos[b, p, 0, 1] = py + COLLISION_BALL_GAP * np.sin(a)
+        svel[b, p, 0, 0] = -0.1 * svel[b, p, 0, 0]
+        svel[b, p, 0, 1] = -0.1 * svel[b, p, 0, 1]
+
+
+@_F
 def _sees(clock, phase):
     return (clock + phase) % SEE_CYCLES != SEE_CYCLES - 1
 
@@ -1049,7 +1089,13 @@ def _cycle(
                     rate = _kick_rate(px, py, pb, sbx, sby, prm)
                     kax = pw * rate * np.cos(pb + cmd[p, 2])
                     kay = pw * rate * np.sin(pb + cmd[p, 2])
+            nearest = 1000.0
+            for q in range(players):
+                if q != p:
+                    d = _hyp(spos[b, p, 1 + q, 0] - pos[b, o, 0], spos[b, p, 1 + q, 1] - pos[b, o, 1])
+                    nearest = min(nearest, d)
             _extrapolate(b, p, kax, kay, kicked, spos, svel, prm, ip)
+            _after_collision(b, p, pos, vel, body, cmd, new_vel, new_body, nearest, spos, svel, prm)
     for o in range(objects):
         pos[b, o, 0], pos[b, o, 1] = new_pos[o, 0], new_pos[o, 1]
         vel[b, o, 0], vel[b, o, 1] = new_vel[o, 0], new_vel[o, 1]

@@ -15,7 +15,16 @@ import torch
 from torch import Tensor
 
 from hfrl_torch.envs.keepaway.params import PhysicsParams
-from hfrl_torch.envs.keepaway.physics import clip_norm, direction, norm, unit, wrap_angle
+from hfrl_torch.envs.keepaway.physics import (
+    DASH_KIND,
+    TURN_KIND,
+    clip_norm,
+    dash_acceleration,
+    direction,
+    norm,
+    unit,
+    wrap_angle,
+)
 
 SEE_CYCLES = 3  # a see every 150 ms: two of every three 100 ms cycles carry one
 EPS = 1e-10  # rcssserver's EPS inside the log of the distance quantisation
@@ -28,6 +37,9 @@ TOO_FAR_LENGTH = 40.0  # unum_too_far_length and ball_vel_too_far_length
 FASTEST_OPPONENT_STEP = 0.3  # the world model moves the opponent fastest to the ball this far towards it
 OPPONENT_DRIFT = 0.25  # ... and every other opponent this far along x, with the ball's x velocity
 OPPONENT_FAST_DRIFT = 0.5  # ... or this far when the ball moves faster than 1 m/cycle along x
+SENSE_SPEED_QSTEP = 0.01  # sense_body's speed is quantised to this (BodySenderPlayerV6::sendVelocity)
+STILL = 1e-4  # Trilearn's EPSILON: a sensed speed below it tells nothing of a collision's direction
+COLLISION_BALL_GAP = 0.2  # where the world model puts a ball it believes the observer ran into
 
 
 def sees_now(clock: Tensor, phase: Tensor) -> Tensor:
@@ -228,6 +240,82 @@ def extrapolate(
         new_pos.append(torch.cat((b_pos.unsqueeze(2), *parts_pos), 2))
         new_vel.append(torch.cat((b_vel.unsqueeze(2), *parts_vel), 2))
     return torch.cat(new_pos, 1), torch.cat(new_vel, 1), belief_body
+
+
+def sensed_velocity(vel: Tensor, body: Tensor) -> Tensor:
+    """A player's velocity as sense_body reports it and the world model rotates it back: the speed
+    quantised to 0.01 m/cycle, the direction rounded to a degree from the body (neck aligned)."""
+    speed = torch.round(norm(vel) / SENSE_SPEED_QSTEP) * SENSE_SPEED_QSTEP
+    return speed.unsqueeze(-1) * unit(body + quantise_direction(wrap_angle(direction(vel) - body)))
+
+
+def after_collision(
+    belief_pos: Tensor,
+    belief_vel: Tensor,
+    prior_pos: Tensor,
+    me_pos: Tensor,
+    me_vel: Tensor,
+    me_body: Tensor,
+    kind: Tensor,
+    power: Tensor,
+    sensed_vel: Tensor,
+    sensed_body: Tensor,
+    physics: PhysicsParams,
+) -> tuple[Tensor, Tensor]:
+    """The ball in every world model once the sense_body message shows whether the observer ran into it
+    (``updateAgentAndBallAfterSense``): the own position and velocity predicted from last cycle's
+    command (a dash or turn moves the player, a kick or nothing leaves it), compared with the velocity
+    sense_body reports (:func:`sensed_velocity` of the true one, ``sensed_vel`` [B, P, 2], with the body
+    ``sensed_body`` [B, P] after the cycle). A collision is assumed when the sensed speed is below 1e-4 with
+    the believed ball within 0.8 m of a moving player or inside the player, or, within 1.585 m, when the
+    sensed velocity has turned or shrunk in both axes to under a quarter of the predicted; if the ball
+    is then nearer than every other player (``prior_pos`` [B, P, O, 2], last cycle's beliefs), the
+    world model puts it 0.2 m from the player on its side with -0.1 times its velocity
+    (``updateBallForCollision``).
+
+    :param belief_pos: the extrapolated beliefs [B, P, O, 2] (``belief_vel`` alike); only the ball
+        (object 0) changes.
+    :param me_pos: each observer's true state before the cycle [B, P, 2] (``me_vel`` alike, ``me_body``
+        [B, P]); ``kind`` and ``power`` [B, P] are its last command.
+    :returns: the ball-corrected beliefs (position, velocity).
+    """
+    moved = (kind == DASH_KIND) | (kind == TURN_KIND)
+    dash = torch.where(kind == DASH_KIND, power, torch.zeros_like(power))
+    v = clip_norm(me_vel + dash_acceleration(me_body, dash, physics), physics.player_speed_max)
+    own_pos = torch.where(moved.unsqueeze(-1), me_pos + v, me_pos)
+    own_vel = torch.where(moved.unsqueeze(-1), v * physics.player_decay, me_vel)
+    sensed_vel = sensed_velocity(sensed_vel, sensed_body)
+    ball, ball_vel = belief_pos[:, :, 0], belief_vel[:, :, 0]
+    to_ball = ball - own_pos
+    d_ball = norm(to_ball)
+    sensed, predicted = norm(sensed_vel), norm(own_vel)
+    still = sensed < STILL
+
+    def turned(axis: int) -> Tensor:
+        a, b = own_vel[..., axis], sensed_vel[..., axis]
+        return ((a > 0) != (b > 0)) | (a.abs() < 0.08)
+
+    collided = (
+        (still & (predicted > 0.01) & (d_ball < 0.8))
+        | (still & (d_ball < physics.player_size + physics.ball_size))
+        | (
+            (d_ball < physics.kickable_distance + 0.5)
+            & ~still
+            & turned(0)
+            & turned(1)
+            & (sensed < 0.25 * predicted)
+        )
+    )
+    players = prior_pos.shape[1]
+    others = norm(prior_pos[:, :, 1:] - me_pos.unsqueeze(2))  # [B, P, P]
+    self_mask = torch.eye(players, dtype=torch.bool, device=me_pos.device)
+    nearest = torch.where(self_mask, torch.full_like(others, 1000.0), others).amin(-1)
+    hit = (collided & (d_ball < nearest)).unsqueeze(-1)
+    placed = own_pos + COLLISION_BALL_GAP * unit(direction(to_ball))
+    new_pos, new_vel = belief_pos.clone(), belief_vel.clone()
+    new_pos[:, :, 0] = torch.where(hit, placed, ball)
+    new_vel[:, :, 0] = torch.where(hit, -0.1 * ball_vel, ball_vel)
+    return new_pos, new_vel
 
 
 def see_phases(batch: int, players: int, generator: torch.Generator, device: torch.device) -> Tensor:

@@ -18,7 +18,14 @@ from torch import Tensor
 from hfrl_torch.envs.keepaway.compiled_cycle import Advance, CompiledCycle
 from hfrl_torch.envs.keepaway.keepers import fastest_keeper, keeper_commands
 from hfrl_torch.envs.keepaway.params import KeepawayConfig, resolve_kernels
-from hfrl_torch.envs.keepaway.perception import extrapolate, observe, own_truth, see_phases, sees_now
+from hfrl_torch.envs.keepaway.perception import (
+    after_collision,
+    extrapolate,
+    observe,
+    own_truth,
+    see_phases,
+    sees_now,
+)
 from hfrl_torch.envs.keepaway.physics import (
     DASH_KIND,
     KICK_KIND,
@@ -517,6 +524,10 @@ class KeepawaySimulator:
         kick_power = torch.where(kick, power, torch.zeros_like(power))
         accel = kick_acceleration(me_pos, me_body, ball_seen, ball_vel_seen, kick_power, angle, p)
         pred = extrapolate(s.seen_pos, s.seen_vel, s.seen_body, accel, kicked, n, p)
+        ball_pos, ball_vel = after_collision(
+            *pred[:2], s.seen_pos, me_pos, s.vel[:, 1:], me_body, kind, power, vel[:, 1:], body[:, 1:], p
+        )
+        pred = (ball_pos, ball_vel, pred[2])
         sees = sees_now(clock, s.see_phase)
         if not bool(sees.any()):
             return own_truth(*pred, pos, vel, body)
