@@ -1,9 +1,12 @@
 """Mean episode duration (95 % interval), taken and out shares of the three benchmark keeper
 policies in both presets. Prints one JSON list. The task options default to the domain config's
 (server perception, the reference HoldBall rule and decision timing); ``--perception exact
---hold-ball spec --decision-timing cycle`` is the exact-state task.
+--hold-ball spec --decision-timing cycle`` is the exact-state task. An episode still running at
+``--cap-s`` simulated seconds (300, as ``evaluate.py``'s ``max_episode_s``) is cut and counted at
+that length (``cut_share``): the reference HoldBall rule can hold the ball for good.
 
     python benchmarks/keepaway_policies.py [--episodes 1000] [--batch 500] [--perception exact|server]
+        [--cap-s 300]
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ def main() -> None:
     parser.add_argument("--perception", default="server", choices=PERCEPTIONS)
     parser.add_argument("--hold-ball", default="reference", choices=HOLD_RULES)
     parser.add_argument("--decision-timing", default="server", choices=DECISION_TIMINGS)
+    parser.add_argument("--cap-s", type=float, default=300.0)
     args = parser.parse_args()
     task = {
         "perception": args.perception,
@@ -46,6 +50,7 @@ def main() -> None:
                 batch=args.batch,
                 seed=args.seed,
                 progress=args.progress,
+                cap_cycles=round(args.cap_s * 10),
                 **task,
             )
             results.append({k: round(v, 3) if isinstance(v, float) else v for k, v in r.items()})

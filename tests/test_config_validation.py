@@ -9,7 +9,7 @@ from omegaconf import DictConfig
 from hfrl_torch.common.errors import ConfigError, UserError
 from hfrl_torch.experiment.cli import CONF_DIR, check_group_choices
 from hfrl_torch.experiment.config import check_kernels, validate_evaluate, validate_train
-from hfrl_torch.experiment.evaluate import evaluate_keepaway, evaluate_tetris
+from hfrl_torch.experiment.evaluate import evaluate_keepaway, evaluate_tetris, format_keepaway_summary
 from hfrl_torch.experiment.factories import make_keepaway_config, make_trainer
 
 
@@ -157,6 +157,7 @@ def test_keepaway_is_learned_by_sarsa_only():
         ("episodes=0", "episodes=0 is invalid: must be an integer >= 1"),
         ("domain.decision_period_cycles=0", "domain.decision_period_cycles=0 is invalid"),
         ("domain.kernels=fast", "domain.kernels='fast' is invalid; allowed: auto, numba, torch"),
+        ("max_episode_s=-1", "max_episode_s=-1 is invalid: must be a finite number >= 0.1"),
     ],
 )
 def test_keepaway_evaluate_bad_values(override, message):
@@ -176,9 +177,21 @@ def test_keepaway_evaluate_reports_the_issue_fields(tmp_path):
     for key in ("ci95_low", "ci95_high", "taken_share", "out_share", "cycles_per_s"):
         assert key in res
     assert res["episodes"] == 16 and res["policy"] == "hold" and res["keepers"] == 3
-    assert abs(res["taken_share"] + res["out_share"] - 1.0) < 1e-9
+    assert abs(res["taken_share"] + res["out_share"] + res["cut_share"] - 1.0) < 1e-9
     assert 0.5 < res["mean_s"] < 10.0  # always holding loses the ball within seconds
     assert gif.is_file() and gif.stat().st_size > 1000
+
+
+def test_keepaway_evaluate_cuts_episodes_at_max_episode_s():
+    """An episode still running at max_episode_s ends there, counted at that length and reported as
+    cut, so a policy that never loses the ball cannot stall evaluate.py."""
+    cfg = _cfg(
+        "evaluate", "domain=keepaway", "policy=hand", "episodes=16", "domain.batch=16", "max_episode_s=1.5"
+    )
+    res = evaluate_keepaway(cfg, progress=False)
+    assert res["mean_s"] <= 1.5 and res["cut_share"] > 0.5
+    assert abs(res["taken_share"] + res["out_share"] + res["cut_share"] - 1.0) < 1e-9
+    assert "cut at max_episode_s, still running" in format_keepaway_summary(res)
 
 
 def test_keepaway_preset_given_as_a_number_on_the_command_line_is_accepted():

@@ -107,6 +107,8 @@ def validate_evaluate(cfg: DictConfig) -> None:
         return
     require_int(cfg, "episodes", 1)
     require_int(cfg, "domain.batch", 1, 65536)
+    if OmegaConf.select(cfg, "max_episode_s") is not None:
+        require_float(cfg, "max_episode_s", 0.1)
     check_keepaway_domain(cfg)
 
 

@@ -26,6 +26,7 @@ from hfrl_torch.envs.keepaway import (
     record_episode_gif,
     record_keeper_gif,
 )
+from hfrl_torch.envs.keepaway.benchmark_policies import CYCLES_PER_SECOND
 from hfrl_torch.envs.tetris.features import DELLACHERIE_WEIGHTS, feature_id, feature_size
 from hfrl_torch.experiment.aggregate import aggregate
 from hfrl_torch.experiment.cli import checked
@@ -218,6 +219,8 @@ def evaluate_keepaway(cfg: DictConfig, progress: bool = True) -> dict[str, objec
     options = asdict(config)
     options.pop("preset"), options.pop("keepers"), options.pop("takers")
     task = {"preset": config.preset, "keepers": config.keepers, "takers": config.takers, **options}
+    cap_s = OmegaConf.select(cfg, "max_episode_s")
+    task["cap_cycles"] = None if cap_s is None else max(1, round(float(cap_s) * CYCLES_PER_SECOND))
     if ckpt is None:
         result = play_benchmark_policy(policy, episodes, batch=batch, seed=seed, progress=progress, **task)
     else:
@@ -271,6 +274,10 @@ def format_keepaway_summary(r: dict[str, object]) -> str:
         f"  ended by takers {100 * r['taken_share']:.0f} %, out of bounds {100 * r['out_share']:.0f} %; "
         f"{r['cycles_per_s']:.0f} simulated cycles/s",
     ]
+    if r.get("cut_share"):
+        out.append(
+            f"  cut at max_episode_s, still running: {100 * r['cut_share']:.1f} % (counted at that length)"
+        )
     if "teams" in r:
         means = [m for m in r["per_team_mean_s"] if m is not None]
         shown = (
