@@ -730,12 +730,14 @@ def _after_collision(b, p, pos, vel, body, cmd, new_vel, new_body, nearest, spos
         vx, vy = vx * scale, vy * scale
         px, py = px + vx, py + vy
         vx, vy = vx * prm[P_DECAY], vy * prm[P_DECAY]
+    bx, by = spos[b, p, 0, 0], spos[b, p, 0, 1]
+    d_ball = _hyp(bx - px, by - py)
+    if d_ball >= prm[KD] + 0.5 or d_ball >= nearest:  # no test can pass, or another player is blamed
+        return
     nb = new_body[o]
     sensed = np.rint(_hyp(new_vel[o, 0], new_vel[o, 1]) / SENSE_SPEED_QSTEP) * SENSE_SPEED_QSTEP
     heading = nb + _qdir(_wrap(np.arctan2(new_vel[o, 1], new_vel[o, 0]) - nb))
     sx, sy = sensed * np.cos(heading), sensed * np.sin(heading)
-    bx, by = spos[b, p, 0, 0], spos[b, p, 0, 1]
-    d_ball = _hyp(bx - px, by - py)
     predicted = _hyp(vx, vy)
     still = sensed < STILL
     turned = ((vx > 0) != (sx > 0) or abs(vx) < 0.08) and ((vy > 0) != (sy > 0) or abs(vy) < 0.08)
@@ -1089,13 +1091,20 @@ def _cycle(
                     rate = _kick_rate(px, py, pb, sbx, sby, prm)
                     kax = pw * rate * np.cos(pb + cmd[p, 2])
                     kay = pw * rate * np.sin(pb + cmd[p, 2])
+            # a collision needs the believed ball within 1.585 m after a cycle in which it moves less
+            # than 2 B_SPEED (a seen velocity is capped near B_SPEED) and the player at most P_SPEED:
+            # farther now, the test and the search for the nearest player are skipped
+            reach = prm[KD] + 0.5 + 2.0 * prm[B_SPEED] + prm[P_SPEED]
+            near = _hyp(spos[b, p, 0, 0] - pos[b, o, 0], spos[b, p, 0, 1] - pos[b, o, 1]) < reach
             nearest = 1000.0
-            for q in range(players):
-                if q != p:
-                    d = _hyp(spos[b, p, 1 + q, 0] - pos[b, o, 0], spos[b, p, 1 + q, 1] - pos[b, o, 1])
-                    nearest = min(nearest, d)
+            if near:
+                for q in range(players):
+                    if q != p:
+                        d = _hyp(spos[b, p, 1 + q, 0] - pos[b, o, 0], spos[b, p, 1 + q, 1] - pos[b, o, 1])
+                        nearest = min(nearest, d)
             _extrapolate(b, p, kax, kay, kicked, spos, svel, prm, ip)
-            _after_collision(b, p, pos, vel, body, cmd, new_vel, new_body, nearest, spos, svel, prm)
+            if near:
+                _after_collision(b, p, pos, vel, body, cmd, new_vel, new_body, nearest, spos, svel, prm)
     for o in range(objects):
         pos[b, o, 0], pos[b, o, 1] = new_pos[o, 0], new_pos[o, 1]
         vel[b, o, 0], vel[b, o, 1] = new_vel[o, 0], new_vel[o, 1]
