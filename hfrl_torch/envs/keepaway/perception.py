@@ -267,8 +267,9 @@ def after_collision(
     command (a dash or turn moves the player, a kick or nothing leaves it), compared with the velocity
     sense_body reports (:func:`sensed_velocity` of the true one, ``sensed_vel`` [B, P, 2], with the body
     ``sensed_body`` [B, P] after the cycle). A collision is assumed when the sensed speed is below 1e-4 with
-    the believed ball within 0.8 m of a moving player or inside the player, or, within 1.585 m, when the
-    sensed velocity has turned or shrunk in both axes to under a quarter of the predicted; if the ball
+    the believed ball within 0.8 m of a moving player or inside the player, or, within 1.585 m, when in
+    each axis the sensed sign differs from the predicted (or the prediction is under 0.08) and the sensed
+    speed is under a quarter of the predicted; if the ball
     is then nearer than every other player (``prior_pos`` [B, P, O, 2], last cycle's beliefs), the
     world model puts it 0.2 m from the player on its side with -0.1 times its velocity
     (``updateBallForCollision``).
