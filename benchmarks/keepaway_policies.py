@@ -19,6 +19,7 @@ import torch
 torch.set_num_threads(1)
 
 from hfrl_torch.envs.keepaway import play_benchmark_policy  # noqa: E402
+from hfrl_torch.envs.keepaway.benchmark_policies import CYCLES_PER_SECOND  # noqa: E402
 from hfrl_torch.envs.keepaway.params import DECISION_TIMINGS, HOLD_RULES, PERCEPTIONS  # noqa: E402
 
 
@@ -50,7 +51,7 @@ def main() -> None:
                 batch=args.batch,
                 seed=args.seed,
                 progress=args.progress,
-                cap_cycles=round(args.cap_s * 10),
+                cap_cycles=round(args.cap_s * CYCLES_PER_SECOND),
                 **task,
             )
             results.append({k: round(v, 3) if isinstance(v, float) else v for k, v in r.items()})

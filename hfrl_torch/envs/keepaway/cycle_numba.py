@@ -714,11 +714,31 @@ def _extrapolate(b, p, kax, kay, kicked, spos, svel, prm, ip):
 
 
 @_F
+def _nearest_other(b, p, pos, spos, players, prm):
+    """The distance from observer ``p`` to the nearest other player in its belief (1000 if none, as
+    ``getClosestInSetTo``), or -1 when its believed ball is too far for a collision this cycle: the
+    ball must end within 1.585 m, it moves less than 2 B_SPEED in a cycle (a seen velocity is capped
+    near B_SPEED) and the player at most P_SPEED."""
+    o = 1 + p
+    reach = prm[KD] + 0.5 + 2.0 * prm[B_SPEED] + prm[P_SPEED]
+    if _hyp(spos[b, p, 0, 0] - pos[b, o, 0], spos[b, p, 0, 1] - pos[b, o, 1]) >= reach:
+        return -1.0
+    nearest = 1000.0
+    for q in range(players):
+        if q != p:
+            nearest = min(
+                nearest, _hyp(spos[b, p, 1 + q, 0] - pos[b, o, 0], spos[b, p, 1 + q, 1] - pos[b, o, 1])
+            )
+    return nearest
+
+
+@_F
 def _after_collision(b, p, pos, vel, body, cmd, new_vel, new_body, nearest, spos, svel, prm):
     """perception.after_collision for observer ``p``, in place: ``pos``, ``vel``, ``body`` still hold
     the state before the cycle, ``new_vel`` [O, 2] and ``new_body`` [O] the one after it (reported as
-    sense_body does); ``nearest`` is the distance from the
-    observer to the nearest other player in its belief before the extrapolation."""
+    sense_body does); ``nearest`` is :func:`_nearest_other` (-1: no collision possible)."""
+    if nearest < 0.0:
+        return
     o = 1 + p
     kind = np.int64(cmd[p, 0])
     px, py, vx, vy = pos[b, o, 0], pos[b, o, 1], vel[b, o, 0], vel[b, o, 1]
@@ -1091,20 +1111,9 @@ def _cycle(
                     rate = _kick_rate(px, py, pb, sbx, sby, prm)
                     kax = pw * rate * np.cos(pb + cmd[p, 2])
                     kay = pw * rate * np.sin(pb + cmd[p, 2])
-            # a collision needs the believed ball within 1.585 m after a cycle in which it moves less
-            # than 2 B_SPEED (a seen velocity is capped near B_SPEED) and the player at most P_SPEED:
-            # farther now, the test and the search for the nearest player are skipped
-            reach = prm[KD] + 0.5 + 2.0 * prm[B_SPEED] + prm[P_SPEED]
-            near = _hyp(spos[b, p, 0, 0] - pos[b, o, 0], spos[b, p, 0, 1] - pos[b, o, 1]) < reach
-            nearest = 1000.0
-            if near:
-                for q in range(players):
-                    if q != p:
-                        d = _hyp(spos[b, p, 1 + q, 0] - pos[b, o, 0], spos[b, p, 1 + q, 1] - pos[b, o, 1])
-                        nearest = min(nearest, d)
+            nearest = _nearest_other(b, p, pos, spos, players, prm)  # before the extrapolation
             _extrapolate(b, p, kax, kay, kicked, spos, svel, prm, ip)
-            if near:
-                _after_collision(b, p, pos, vel, body, cmd, new_vel, new_body, nearest, spos, svel, prm)
+            _after_collision(b, p, pos, vel, body, cmd, new_vel, new_body, nearest, spos, svel, prm)
     for o in range(objects):
         pos[b, o, 0], pos[b, o, 1] = new_pos[o, 0], new_pos[o, 1]
         vel[b, o, 0], vel[b, o, 1] = new_vel[o, 0], new_vel[o, 1]
@@ -1175,6 +1184,14 @@ def _reset_field(
                 svel[b, p, o, 0], svel[b, p, o, 1] = 0.0, 0.0
             _observe(b, p, pos, vel, body, spos, svel, sbody, np.empty(1), 0, False, prm, ip)
             _own_truth(b, p, pos, vel, body, spos, svel, sbody)
+
+
+@_FA
+def view_work(ip, features):
+    """The work arrays of a kernel that computes a holder's observation, made once per range: its view
+    (keepers [n, 2], takers [m, 2]), its teammate order [n - 1] and its state variables [features]."""
+    n, m = ip[N], ip[M]
+    return np.empty((n, 2)), np.empty((m, 2)), np.empty(n - 1, dtype=np.int64), np.empty(features)
 
 
 @_FA
@@ -1300,11 +1317,7 @@ def decisions(
     state variables."""
     batch = pos.shape[0]
     for p in numba.prange(parts):
-        n, m = ip[N], ip[M]
-        kpos = np.empty((n, 2))
-        tpos = np.empty((m, 2))
-        order = np.empty(n - 1, dtype=np.int64)
-        obs = np.empty(obs_out.shape[1])
+        kpos, tpos, order, obs = view_work(ip, obs_out.shape[1])
         lo, hi = part_range(batch, p, parts)
         for b in range(lo, hi):
             h, k, must = _decision(
@@ -1641,11 +1654,8 @@ def play(
         quota = durations.shape[1]
         scr = scratch(ip, grid)
         u = np.empty(count)
-        kpos = np.empty((n, 2))
-        tpos = np.empty((m, 2))
-        order = np.empty(n - 1, dtype=np.int64)
+        kpos, tpos, order, obs64 = view_work(ip, 4 * n + 2 * m - 3)
         obs = np.empty(4 * n + 2 * m - 3, dtype=np.float32)
-        obs64 = np.empty(4 * n + 2 * m - 3)
         lo, hi = part_range(batch, p, parts)
         for b in range(lo, hi):
             for _ in range(max_cycles):
@@ -1796,11 +1806,8 @@ def env_outputs(
     ``done`` flags and, for every field, whether it decides now."""
     batch = pos.shape[0]
     for p in numba.prange(parts):
-        n, m = ip[N], ip[M]
-        kpos = np.empty((n, 2))
-        tpos = np.empty((m, 2))
-        order = np.empty(n - 1, dtype=np.int64)
-        obs = np.empty(obs_out.shape[1])
+        n = ip[N]
+        kpos, tpos, order, obs = view_work(ip, obs_out.shape[1])
         lo, hi = part_range(batch, p, parts)
         for b in range(lo, hi):
             h, _, must = _decision(
