@@ -54,6 +54,7 @@ T_TRAVEL, T_SERIES, T_CRUISE, T_REACH = 0, 1, 2, 3  # T_REACH..T_REACH + 3: the 
 # scratch arrays (:func:`scratch`)
 S_CMD, S_POS, S_VEL, S_BODY, S_ACC, S_HIT = 0, 1, 2, 3, 4, 5
 S_ICYC, S_IPTS, S_TPTS, S_KPOS, S_TPOS, S_ORDER = 6, 7, 8, 9, 10, 11
+NO_CAP = 1 << 62  # _intercept searches to its horizon
 S_OPEN = 12
 # rows of GetOpen's work array (``scr[S_OPEN]`` [6, grid points])
 O_TOTAL, O_MINE, O_BLOCKED, O_GX, O_GY, O_HELD = 0, 1, 2, 3, 4, 5
@@ -305,8 +306,10 @@ def _pass(me, vpos, vvel, vbody, target, prm, ip):
 
 
 @_FI
-def _intercept(o, vpos, vvel, vbody, prm, ip, tabs):
-    """skills.intercept_estimate for object ``o`` of a view: (cycles, x, y)."""
+def _intercept(o, vpos, vvel, vbody, prm, ip, tabs, below):
+    """skills.intercept_estimate for object ``o`` of a view: (cycles, x, y). With ``below`` at most the
+    horizon, an interception in ``below`` cycles or more is not searched for: (below, 0, 0);
+    NO_CAP searches to the horizon."""
     h = ip[HORIZON]
     kd, decay = prm[KD], prm[P_DECAY]
     px, py = vpos[o, 0], vpos[o, 1]
@@ -328,7 +331,7 @@ def _intercept(o, vpos, vvel, vbody, prm, ip, tabs):
     head_const = ex * hx + ey * hy
     forward = max(pvx * hx + pvy * hy, 0.0)
     first_gap = min(forward + prm[DASH_ACC], prm[P_SPEED]) - prm[CRUISE]
-    for i in range(h + 1):
+    for i in range(min(h + 1, below)):
         t = tabs[T_TRAVEL, i]
         moved = t * t * vsq
         need = np.sqrt(max(t * need_lin + need_const + moved, 0.0)) - kd
@@ -354,9 +357,26 @@ def _intercept(o, vpos, vvel, vbody, prm, ip, tabs):
                 reach = tabs[T_REACH + 3, i]
         if need <= reach:
             return i, bx + t * vx, by + t * vy
+    if below <= h:
+        return below, 0.0, 0.0
     still = 1.0 - prm[B_DECAY]
     rx, ry = bx + vx / still, by + vy / still
     return h + 1 + np.int64(np.ceil(_hyp(rx - px, ry - py) / prm[CRUISE])), rx, ry
+
+
+@_FI
+def _keeper_intercepts(vpos, vvel, vbody, holder, kickable, prm, ip, tabs, icyc, ipts):
+    """The keepers' interceptions in a view [n], as far as :func:`_fastest` and the commands read
+    them: with the ball kickable only the holder's (it is the fastest; the others read its
+    cycles); else each keeper's searched only below the fastest before it, since a later keeper
+    counts only if strictly faster. The fastest's cycles and point are exact either way."""
+    best = NO_CAP
+    for k in range(ip[N]):
+        if kickable and k != holder:
+            icyc[k] = NO_CAP
+            continue
+        icyc[k], ipts[k, 0], ipts[k, 1] = _intercept(1 + k, vpos, vvel, vbody, prm, ip, tabs, best)
+        best = min(best, icyc[k])
 
 
 @_FI
@@ -529,10 +549,9 @@ def _commands(b, pos, vel, body, spos, svel, sbody, holder, kickable, pass_targe
     opn[O_HELD, 0] = 0.0
     if ip[SERVER_PERCEPTION] == 0:
         vpos, vvel, vbody = pos[b], vel[b], body[b]
-        for k in range(n):
-            icyc[k], ipts[k, 0], ipts[k, 1] = _intercept(1 + k, vpos, vvel, vbody, prm, ip, tabs)
+        _keeper_intercepts(vpos, vvel, vbody, holder, kickable, prm, ip, tabs, icyc, ipts)
         for j in range(m):
-            _, tpts[j, 0], tpts[j, 1] = _intercept(1 + n + j, vpos, vvel, vbody, prm, ip, tabs)
+            _, tpts[j, 0], tpts[j, 1] = _intercept(1 + n + j, vpos, vvel, vbody, prm, ip, tabs, NO_CAP)
         with_ball = _fastest(icyc, holder, kickable)
         for k in range(n):
             kind, power, angle = _keeper_command(
@@ -546,20 +565,18 @@ def _commands(b, pos, vel, body, spos, svel, sbody, holder, kickable, pass_targe
     for k in range(n):
         vpos, vvel, vbody = spos[b, k], svel[b, k], sbody[b, k]
         opn[O_HELD, 0] = 0.0
-        for q in range(n):
-            icyc[q], ipts[q, 0], ipts[q, 1] = _intercept(1 + q, vpos, vvel, vbody, prm, ip, tabs)
+        if not (kickable and k == holder):  # the holder passes or holds: it reads no interception
+            _keeper_intercepts(vpos, vvel, vbody, holder, kickable, prm, ip, tabs, icyc, ipts)
         kind, power, angle = _keeper_command(
             k, vpos, vvel, vbody, icyc, ipts, holder, kickable, pass_target, prm, ip, tabs, opn
         )
         cmd[k, 0], cmd[k, 1], cmd[k, 2] = kind, power, angle
     for j in range(m):
         vpos, vvel, vbody = spos[b, n + j], svel[b, n + j], sbody[b, n + j]
-        for i in range(m):
-            _, tpts[i, 0], tpts[i, 1] = _intercept(1 + n + i, vpos, vvel, vbody, prm, ip, tabs)
+        _, tpts[j, 0], tpts[j, 1] = _intercept(1 + n + j, vpos, vvel, vbody, prm, ip, tabs, NO_CAP)  # its own
         with_ball = holder
         if m > 2:
-            for q in range(n):
-                icyc[q], ipts[q, 0], ipts[q, 1] = _intercept(1 + q, vpos, vvel, vbody, prm, ip, tabs)
+            _keeper_intercepts(vpos, vvel, vbody, holder, kickable, prm, ip, tabs, icyc, ipts)
             with_ball = _fastest(icyc, holder, kickable)
         kind, power, angle = _taker_command(j, vpos, vvel, vbody, tpts, with_ball, prm, ip)
         cmd[n + j, 0], cmd[n + j, 1], cmd[n + j, 2] = kind, power, angle
@@ -569,9 +586,36 @@ def _commands(b, pos, vel, body, spos, svel, sbody, holder, kickable, pass_targe
 
 
 @_F
+def _qdist_of(tenths):
+    """The quantised distance whose log rounds to ``tenths`` tenths."""
+    return np.rint(np.exp(tenths * 0.1) / 0.1) * 0.1
+
+
+@_FA
+def _quantisation_tables():
+    """The sensor's quantised distances for logs of QDIST_LOW..QDIST_HIGH tenths, and cos and sin
+    of every whole degree from -180 to 180: made by the same compiled functions as the direct
+    computations, so that a lookup gives the same bits."""
+    qdist = np.empty(QDIST_HIGH - QDIST_LOW + 1)
+    for i in range(qdist.shape[0]):
+        qdist[i] = _qdist_of(np.float64(QDIST_LOW + i))
+    cos_deg, sin_deg = np.empty(361), np.empty(361)
+    for i in range(361):
+        a = np.float64(i - 180) * DEG
+        cos_deg[i], sin_deg[i] = np.cos(a), np.sin(a)
+    return qdist, cos_deg, sin_deg
+
+
+QDIST_LOW, QDIST_HIGH = -240, 60  # log(1e-10) is -230 tenths; the field's diagonal is under 400 m
+QDIST, COS_DEG, SIN_DEG = _quantisation_tables()
+
+
+@_F
 def _qdist(d):
-    qlog = np.rint(np.log(d + 1e-10) / 0.1) * 0.1
-    return np.rint(np.exp(qlog) / 0.1) * 0.1
+    tenths = np.rint(np.log(d + 1e-10) / 0.1)
+    if QDIST_LOW <= tenths <= QDIST_HIGH:
+        return QDIST[np.int64(tenths) - QDIST_LOW]
+    return _qdist_of(tenths)
 
 
 @_F
@@ -600,7 +644,8 @@ def _observe(b, p, pos, vel, body, spos, svel, sbody, u, u0, use_u, prm, ip):
         dist = _hyp(rx, ry)
         seen = dist > 0
         safe = dist if seen else 1.0
-        qdir = _qdir(_wrap(np.arctan2(ry, rx) - head))
+        deg = np.rint(_wrap(np.arctan2(ry, rx) - head) / DEG)  # as _qdir
+        qdir = deg * DEG
         qdist = _qdist(dist)
         if o == 0:
             qd0 = qdist
@@ -620,7 +665,7 @@ def _observe(b, p, pos, vel, body, spos, svel, sbody, u, u0, use_u, prm, ip):
             dir_chg = np.rint(dir_chg / 0.1) * 0.1
         qdist_chg = qdist * np.rint((dist_chg / safe) / 0.02) * 0.02
         turn = dir_chg * DEG * qdist
-        ca, sa = np.cos(qdir), np.sin(qdir)
+        ca, sa = COS_DEG[np.int64(deg) + 180], SIN_DEG[np.int64(deg) + 180]
         rvx = qdist_chg * ca - turn * sa
         rvy = qdist_chg * sa + turn * ca
         svel[b, p, o, 0] = mvx + (ch * rvx - sh * rvy)
