@@ -46,7 +46,8 @@ def test_defaults_are_valid():
         ("agent.games_per_candidate=0", "agent.games_per_candidate=0 is invalid: must be an integer >= 1"),
         ("seed=-3", "seed=-3 is invalid: must be an integer in 0.."),
         ("device=tpu", "device='tpu' is invalid; allowed: cpu, cuda, cuda:N"),
-        ("threads=0", "threads=0 is invalid: must be an integer in 1..256"),
+        ("threads=0", "threads=0 is invalid: must be auto or an integer in 1..256"),
+        ("threads=all", "threads='all' is invalid: must be auto or an integer in 1..256"),
         ("logger.backend=wandb", "logger.backend='wandb' is invalid; allowed: tensorboard, none"),
         (
             "fusion=linear trainer=none",

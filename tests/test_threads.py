@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import os
+
 import numba
 import torch
 from omegaconf import OmegaConf
 
-from hfrl_torch.common.threads import thread_count
+from hfrl_torch.common.threads import available_threads, thread_count
 from hfrl_torch.experiment.factories import set_threads
 
 
@@ -31,6 +33,22 @@ def test_threads_sets_the_kernels_threads_and_keeps_torch_at_one() -> None:
         assert n == min(2, numba.config.NUMBA_NUM_THREADS)
         assert numba.get_num_threads() == n
         assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(before[0])
+        numba.set_num_threads(before[1])
+
+
+def test_auto_threads_are_the_cores_this_process_may_use(monkeypatch) -> None:
+    before = torch.get_num_threads(), numba.get_num_threads()
+    cores = min(len(os.sched_getaffinity(0)), numba.config.NUMBA_NUM_THREADS)
+    try:
+        monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+        assert available_threads() == cores
+        assert set_threads(OmegaConf.create({"threads": "auto"})) == cores == numba.get_num_threads()
+        monkeypatch.setenv("OMP_NUM_THREADS", "1")  # a Ray task of one CPU
+        assert available_threads() == 1
+        monkeypatch.setenv("OMP_NUM_THREADS", "junk")  # not a count: ignored
+        assert available_threads() == cores
     finally:
         torch.set_num_threads(before[0])
         numba.set_num_threads(before[1])

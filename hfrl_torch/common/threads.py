@@ -3,7 +3,20 @@ fields, the compiled Sarsa learner its decisions (each as numba ``prange`` regio
 
 from __future__ import annotations
 
+import os
+
 import numba
+
+
+def available_threads() -> int:
+    """The threads ``threads=auto`` runs on: the cores this process may use (its CPU affinity, which Slurm
+    and containers set), no more than ``OMP_NUM_THREADS`` where that is set (Ray sets it to a task's CPUs)
+    nor than numba's pool (``NUMBA_NUM_THREADS``)."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    omp = os.environ.get("OMP_NUM_THREADS", "")
+    if omp.isdigit() and int(omp) > 0:
+        cores = min(cores, int(omp))
+    return max(1, min(cores, numba.config.NUMBA_NUM_THREADS))
 
 
 def thread_count(rows: int, min_rows_per_thread: int) -> int:

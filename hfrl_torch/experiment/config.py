@@ -67,6 +67,14 @@ GROUPS = ("domain", "agent", "fusion", "human", "trainer", "logger")
 # ------------------------------------------------------------------------------ run
 
 
+def check_threads(cfg: DictConfig) -> None:
+    """``threads``: ``auto`` (every core this process may use) or a count of threads."""
+    value = cfg.threads
+    ok = value == "auto" or (isinstance(value, int) and not isinstance(value, bool) and 1 <= value <= 256)
+    if not ok:
+        raise ConfigError(f"threads={value!r} is invalid: must be auto or an integer in 1..256")
+
+
 def validate_train(cfg: DictConfig) -> None:
     """Check every value ``train.py`` uses; raises ``ConfigError`` with one line on the first bad one."""
     require_int(cfg, "seed", 0, 2**62)
@@ -75,7 +83,7 @@ def validate_train(cfg: DictConfig) -> None:
     require_choice(cfg, "fusion.name", FUSIONS)
     require_choice(cfg, "trainer.name", TRAINERS)
     require_choice(cfg, "logger.backend", BACKENDS)
-    require_int(cfg, "threads", 1, 256)
+    check_threads(cfg)
     check_device(cfg)
     if agent == "dqn":
         check_dqn(cfg)
@@ -99,7 +107,7 @@ def validate_evaluate(cfg: DictConfig) -> None:
     if cfg.get("runs") is not None:
         return  # the report checks its own options (aggregate.py)
     require_int(cfg, "seed", 0, 2**62)
-    require_int(cfg, "threads", 1, 256)
+    check_threads(cfg)
     domain = require_choice(cfg, "domain.name", DOMAINS)
     if domain == "tetris":
         require_int(cfg, "games", 1)

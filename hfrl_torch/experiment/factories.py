@@ -20,6 +20,7 @@ from hfrl_torch.agents.tamer import TamerAgent
 from hfrl_torch.agents.tamer.deep_tamer import DeepTamer
 from hfrl_torch.agents.tamer.keeper_tamer import KeeperTamer
 from hfrl_torch.common.checkpoint import load_checkpoint
+from hfrl_torch.common.threads import available_threads
 from hfrl_torch.envs.keepaway import KeepawayConfig
 from hfrl_torch.envs.tetris import engine_torch
 from hfrl_torch.envs.tetris.engine_numba import play as numba_play
@@ -62,10 +63,12 @@ def make_device(cfg: DictConfig) -> torch.device:
 
 
 def set_threads(cfg: DictConfig) -> int:
-    """Apply ``threads`` to the compiled kernels (games, boards and fields run in parallel over threads);
-    torch keeps one intra-op thread: its ops here are small, and a second thread's spin-waits took the
-    other core from the kernels (CE at ``threads=2``: 33.1 s against 27.5 s with torch at one)."""
-    n = min(int(cfg.threads), numba.config.NUMBA_NUM_THREADS)
+    """Apply ``threads`` (a count, or ``auto``: every core this process may use) to the compiled kernels
+    (games, boards and fields run in parallel over threads); torch keeps one intra-op thread: its ops here
+    are small, and a second thread's spin-waits took the other core from the kernels (CE at ``threads=2``:
+    33.1 s against 27.5 s with torch at one)."""
+    n = available_threads() if cfg.threads == "auto" else int(cfg.threads)
+    n = min(n, numba.config.NUMBA_NUM_THREADS)
     numba.set_num_threads(n)
     torch.set_num_threads(1)  # last: numba's OpenMP layer can reset torch's thread count
     return n
