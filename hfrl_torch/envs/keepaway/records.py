@@ -36,14 +36,25 @@ class KeepawayRecords:
         self.episodes = torch.zeros(self.learners, dtype=torch.int64)
         self.holds = torch.zeros(fields, dtype=torch.int64)  # of the episode in progress
         self.decisions = torch.zeros(fields, keepers, dtype=torch.int64)  # of the episode in progress
-        self._rows: list[torch.Tensor] = [torch.zeros(0, 5 + keepers, dtype=torch.int64)]
+        # rows in a buffer that doubles when full: a curve point reads the table, and concatenating it
+        # anew for each of a long run's thousands of points copied it quadratically often
+        self._buffer = torch.zeros(1024, 5 + keepers, dtype=torch.int64)
+        self._count = 0
 
     @property
     def table(self) -> torch.Tensor:
-        """All rows [E, 5 + keepers] int64, in the order the episodes ended."""
-        if len(self._rows) > 1:
-            self._rows = [torch.cat(self._rows)]
-        return self._rows[0]
+        """All rows [E, 5 + keepers] int64, in the order the episodes ended (a view: read, do not write)."""
+        return self._buffer[: self._count]
+
+    def _append(self, rows: torch.Tensor) -> None:
+        """Add episode rows [R, 5 + keepers] after the others."""
+        end = self._count + rows.shape[0]
+        if end > self._buffer.shape[0]:
+            grown = torch.zeros(max(end, 2 * self._buffer.shape[0]), self._buffer.shape[1], dtype=torch.int64)
+            grown[: self._count] = self._buffer[: self._count]
+            self._buffer = grown
+        self._buffer[self._count : end] = rows
+        self._count = end
 
     @property
     def learner_clock(self) -> torch.Tensor:
@@ -79,7 +90,7 @@ class KeepawayRecords:
         row = torch.cat(
             (torch.stack((rows, ordinal, end, duration, self.holds[rows]), 1), self.decisions[rows]), 1
         )
-        self._rows.append(row)
+        self._append(row)
         self.episodes.index_add_(0, learner, torch.ones_like(learner))
         self.holds[rows] = 0
         self.decisions[rows] = 0
@@ -103,7 +114,10 @@ class KeepawayRecords:
                 f"records of {state['clock'].numel()} fields / {state['episodes'].numel()} learners cannot "
                 f"continue as {self.fields} fields / {self.learners} learners"
             )
-        self._rows = [state["rows"].clone()]
+        rows = state["rows"]
+        self._buffer = torch.zeros(max(1024, 2 * rows.shape[0]), 5 + self.keepers, dtype=torch.int64)
+        self._count = 0
+        self._append(rows)
         self.clock = state["clock"].clone()
         self.episodes = state["episodes"].clone()
         if "finished_cycles" not in state:
