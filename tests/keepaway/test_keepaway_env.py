@@ -6,6 +6,7 @@ import gymnasium
 import numpy as np
 import pytest
 import torch
+from torchrl.envs import TransformedEnv
 from torchrl.envs.utils import check_env_specs
 
 from hfrl_torch import keys
@@ -71,6 +72,29 @@ def test_partial_reset_changes_only_flagged_fields(sync: str, options: dict) -> 
         # "all": run to the keeper's first decision inside reset; "any": not deciding yet, no cycle run
         assert after[keys.DECIDING][i].item() == (sync == "all")
         assert (after[keys.EPISODE_CYCLES][i].item() == 0) == (sync == "any")
+
+
+@pytest.mark.parametrize("options", [{}, {"kernels": "cycle", **SERVER}])
+@pytest.mark.parametrize("sync", SYNCS)
+def test_maybe_reset_gives_what_torchrl_s_blend_gives(sync: str, options: dict) -> None:
+    """KeepawayEnv.maybe_reset puts the reset's entries in place; TorchRL's (here through a TransformedEnv,
+    as on the taught learners' path) blends them with TensorDict.where: twin envs, the same actions, the
+    same tensordicts at every step."""
+    ours = KeepawayEnv(6, seed=4, sync=sync, **options)
+    theirs = TransformedEnv(KeepawayEnv(6, seed=4, sync=sync, **options))
+    td_ours, td_theirs = ours.reset(), theirs.reset()
+    generator = torch.Generator().manual_seed(0)
+    resets = 0
+    for _ in range(120):
+        action = torch.randint(0, ours.config.num_actions, (6,), generator=generator)
+        td_ours[keys.ACTION], td_theirs[keys.ACTION] = action, action.clone()
+        out_ours, td_ours = ours.step_and_maybe_reset(td_ours)
+        out_theirs, td_theirs = theirs.step_and_maybe_reset(td_theirs)
+        resets += int(out_ours["next", keys.DONE].any())
+        for a, b in ((out_ours, out_theirs), (td_ours, td_theirs)):
+            assert set(a.keys(True, True)) == set(b.keys(True, True))
+            assert all(torch.equal(a[k], b[k]) for k in b.keys(True, True)), sorted(b.keys(True, True))
+    assert resets >= 5  # partial resets were compared, not only steps
 
 
 def test_any_mode_steps_one_cycle_and_ignores_other_fields_actions() -> None:

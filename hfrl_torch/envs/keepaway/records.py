@@ -7,6 +7,8 @@ keeper, per learner, over windows of simulated time or of episodes.
 
 from __future__ import annotations
 
+import numba
+import numpy as np
 import torch
 
 from hfrl_torch.common.stats import summarize
@@ -14,6 +16,61 @@ from hfrl_torch.common.stats import summarize
 CYCLES_PER_SECOND = 10
 CYCLES_PER_MINUTE = 60 * CYCLES_PER_SECOND
 CYCLES_PER_HOUR = 3600 * CYCLES_PER_SECOND
+
+
+def _ints(x: torch.Tensor) -> np.ndarray:
+    """``x`` as a contiguous int64 numpy array on the CPU (a view where it already is one)."""
+    return x.detach().to("cpu", torch.int64).contiguous().numpy()
+
+
+_JIT = numba.njit(cache=True, nogil=True)
+
+
+@_JIT
+def _count_decisions(
+    fields: np.ndarray, keeper: np.ndarray, action: np.ndarray, decisions: np.ndarray, holds: np.ndarray
+) -> None:
+    """One decision of ``keeper[i]`` on ``fields[i]``, a HoldBall where ``action[i]`` is 0."""
+    for i in range(fields.shape[0]):
+        decisions[fields[i], keeper[i]] += 1
+        holds[fields[i]] += action[i] == 0
+
+
+@_JIT
+def _finish_rows(
+    ended: np.ndarray,
+    durations: np.ndarray,
+    per_learner: int,
+    finished_cycles: np.ndarray,
+    clock: np.ndarray,
+    episodes: np.ndarray,
+    holds: np.ndarray,
+    decisions: np.ndarray,
+    out: np.ndarray,
+) -> int:
+    """The rows of the episodes that ended on ``ended`` fields, written into ``out`` in field order; the
+    clocks include the ended episodes before any row reads its learner's clock. Returns the rows written."""
+    for f in range(ended.shape[0]):
+        if ended[f]:
+            finished_cycles[f] += durations[f]
+            clock[f] = finished_cycles[f]
+    r = 0
+    for f in range(ended.shape[0]):
+        if not ended[f]:
+            continue
+        learner = f // per_learner
+        end = 0
+        for g in range(learner * per_learner, (learner + 1) * per_learner):
+            end += clock[g]
+        out[r, 0], out[r, 1], out[r, 2] = f, episodes[learner], end
+        out[r, 3], out[r, 4] = durations[f], holds[f]
+        for k in range(decisions.shape[1]):
+            out[r, 5 + k] = decisions[f, k]
+            decisions[f, k] = 0
+        episodes[learner] += 1
+        holds[f] = 0
+        r += 1
+    return r
 
 
 class KeepawayRecords:
@@ -46,13 +103,18 @@ class KeepawayRecords:
         """All rows [E, 5 + keepers] int64, in the order the episodes ended (a view: read, do not write)."""
         return self._buffer[: self._count]
 
-    def _append(self, rows: torch.Tensor) -> None:
-        """Add episode rows [R, 5 + keepers] after the others."""
-        end = self._count + rows.shape[0]
+    def _reserve(self, rows: int) -> None:
+        """Room for ``rows`` more rows in the buffer."""
+        end = self._count + rows
         if end > self._buffer.shape[0]:
             grown = torch.zeros(max(end, 2 * self._buffer.shape[0]), self._buffer.shape[1], dtype=torch.int64)
             grown[: self._count] = self._buffer[: self._count]
             self._buffer = grown
+
+    def _append(self, rows: torch.Tensor) -> None:
+        """Add episode rows [R, 5 + keepers] after the others."""
+        self._reserve(rows.shape[0])
+        end = self._count + rows.shape[0]
         self._buffer[self._count : end] = rows
         self._count = end
 
@@ -67,33 +129,30 @@ class KeepawayRecords:
 
     def decided(self, fields: torch.Tensor, keeper: torch.Tensor, action: torch.Tensor) -> None:
         """Count one decision of ``keeper`` [M] (action [M]) on each of the distinct ``fields`` [M]."""
-        fields = fields.cpu()
-        self.decisions[fields, keeper.cpu()] += 1
-        self.holds[fields] += (action.cpu() == 0).long()
+        _count_decisions(
+            _ints(fields), _ints(keeper), _ints(action), self.decisions.numpy(), self.holds.numpy()
+        )
 
     def advance(self, episode_cycles: torch.Tensor) -> None:
         """Set the clocks from the cycles [B] of the episodes in progress (or just ended)."""
-        self.clock = self.finished_cycles + episode_cycles.cpu()
+        torch.add(self.finished_cycles, episode_cycles.cpu(), out=self.clock)
 
     def finish(self, ended: torch.Tensor, durations: torch.Tensor) -> None:
         """Record the episodes that ended on fields ``ended`` [B] with ``durations`` [B] cycles; call
         :meth:`advance` with the same step's cycles first, so that the learners' clocks include them."""
-        rows = ended.cpu().nonzero().squeeze(-1)
-        duration = durations.cpu()[rows]
-        learner = self.learner_of(rows)
-        _, counts = torch.unique_consecutive(learner, return_counts=True)  # rows ascending: learners too
-        starts = torch.repeat_interleave(counts.cumsum(0) - counts, counts)
-        ordinal = self.episodes[learner] + torch.arange(rows.numel()) - starts
-        self.finished_cycles[rows] += duration
-        self.clock[rows] = self.finished_cycles[rows]
-        end = self.learner_clock[learner]
-        row = torch.cat(
-            (torch.stack((rows, ordinal, end, duration, self.holds[rows]), 1), self.decisions[rows]), 1
+        self._reserve(self.fields)
+        written = _finish_rows(
+            ended.cpu().contiguous().numpy(),
+            _ints(durations),
+            self.fields_per_learner,
+            self.finished_cycles.numpy(),
+            self.clock.numpy(),
+            self.episodes.numpy(),
+            self.holds.numpy(),
+            self.decisions.numpy(),
+            self._buffer[self._count :].numpy(),
         )
-        self._append(row)
-        self.episodes.index_add_(0, learner, torch.ones_like(learner))
-        self.holds[rows] = 0
-        self.decisions[rows] = 0
+        self._count += written
 
     def state_dict(self) -> dict[str, torch.Tensor]:
         """Tensors that restore the records, the episodes in progress included."""

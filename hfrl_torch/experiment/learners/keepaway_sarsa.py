@@ -124,6 +124,8 @@ class SarsaKeepers(Learner):
             self.episode_watched = torch.zeros(fields, dtype=torch.int64)
             self.effort = torch.zeros(0, len(EFFORT_COLUMNS), dtype=torch.float64)
         self.td: TensorDictBase | None = None
+        # the state slot (f * keepers + k) of every field's keepers [B, keepers], for the episode ends
+        self._keeper_slots = torch.arange(fields * self.n, device=device).view(fields, self.n)
         self._saved_at: int | None = None
         play = None
         if checkpoint is not None:
@@ -269,44 +271,45 @@ class SarsaKeepers(Learner):
     def step(self) -> None:
         """One env step of every field: the deciding keepers choose and learn, the env runs on."""
         td, n, agent = self.td, self.n, self.agent_sarsa
-        rows = td[keys.DECIDING].nonzero().squeeze(-1)
+        rows = td.get(keys.DECIDING).nonzero().squeeze(-1)
+        every = rows.numel() == self.fields  # (one field per learner: every step; no rows to pick then)
         if rows.numel():
-            keeper = td[keys.KEEPER][rows]
-            obs, mask = td[keys.OBSERVATION][rows], td[keys.ACTION_MASK][rows]
+            pick = (lambda x: x) if every else (lambda x: x[rows])
+            keeper = pick(td.get(keys.KEEPER))
+            obs, mask = pick(td.get(keys.OBSERVATION)), pick(td.get(keys.ACTION_MASK))
             slots = rows * n + keeper
             if not self.taught:
-                chosen = agent.decide(slots, obs, mask, self.reward[rows])
+                chosen = agent.decide(slots, obs, mask, pick(self.reward))
             else:
                 chosen = self._fused_decision(td, rows, keeper, slots, obs, mask)
             self.records.decided(rows, keeper, chosen)
-            self.action = self.action.index_put((rows,), chosen)
-        td[keys.ACTION] = self.action
+            self.action = chosen if every else self.action.index_put((rows,), chosen)
+        td.set(keys.ACTION, self.action)
         td, td_next = self.env.step_and_maybe_reset(td)
         if self.watcher is not None:
             self.watcher(td)
-        after = td["next"]
-        ended = after[keys.DONE].view(-1)
-        self.reward = torch.where(
-            ended, 0.0, after[keys.REWARD].view(-1)
-        )  # a restarted field's keeper starts
-        self.records.advance(after[keys.EPISODE_CYCLES])
+        after = td.get("next")
+        ended = after.get(keys.DONE).view(-1)
+        cycles = after.get(keys.EPISODE_CYCLES)
+        self.reward = after.get(keys.REWARD).view(-1).masked_fill(ended, 0.0)  # a restarted keeper starts
+        self.records.advance(cycles)
         if self.taught:
             self._deliver(after)
             self.episode_watched += self.present.to(torch.int64) * after[keys.STEP_CYCLES].view(-1).cpu()
         if bool(ended.any()):
             done_rows = ended.nonzero().squeeze(-1)
-            slots = (done_rows.unsqueeze(1) * n + torch.arange(n, device=done_rows.device)).reshape(-1)
-            end_rewards = after[keys.EPISODE_END_REWARDS][done_rows].reshape(-1)
+            slots = self._keeper_slots[done_rows].view(-1)
+            end_rewards = after.get(keys.EPISODE_END_REWARDS)[done_rows].view(-1)
             if self.taught:
-                lasted = after[keys.EPISODE_CYCLES].view(-1).double().cpu() / CYCLES_PER_SECOND
+                lasted = cycles.view(-1).double().cpu() / CYCLES_PER_SECOND
                 taught = self.episode_given > 0
                 self._book_effort(ended.cpu())
                 self.fusion.end_episode(ended.cpu(), lasted, taught)
                 self.trainer.new_episodes(ended.cpu())
             agent.end_episode(slots, end_rewards)
-            self.records.finish(ended, after[keys.EPISODE_CYCLES])
+            self.records.finish(ended, cycles)
         self.td = td_next
-        self.records.advance(td_next[keys.EPISODE_CYCLES])
+        self.records.advance(td_next.get(keys.EPISODE_CYCLES))
 
     @property
     def present(self) -> torch.Tensor:
