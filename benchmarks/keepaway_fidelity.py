@@ -28,6 +28,7 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from hfrl_torch.agents.sarsa import SarsaLambda
+from hfrl_torch.agents.sarsa.sarsa_numba import SarsaLambdaNumba
 from hfrl_torch.envs.keepaway import KeepawayConfig
 from hfrl_torch.envs.keepaway.benchmark_policies import play_benchmark_policy
 from hfrl_torch.envs.keepaway.records import CYCLES_PER_HOUR
@@ -89,6 +90,8 @@ def learn(args: argparse.Namespace) -> dict:
             for name in ("preset", "perception", "hold_ball", "decision_timing", "movement_noise")
         ),
         f"domain.noisy_observations={str(config.noisy_observations).lower()}",
+        # first ties patch SarsaLambda.select, which the compiled learner's decisions do not call
+        *(["agent.kernels=torch"] if args.ties == "first" else []),
     ]
     with initialize_config_dir(str(CONF_DIR), version_base=None):
         cfg = compose("train", overrides=overrides)
@@ -119,6 +122,8 @@ def learn(args: argparse.Namespace) -> dict:
 
 def _use_first_ties(agent: SarsaLambda) -> None:
     """Greedy ties to the lowest action; exploration draws as in :meth:`SarsaLambda.select`."""
+    if isinstance(agent, SarsaLambdaNumba):
+        raise ValueError("--ties first patches the torch learner's select; the compiled one never calls it")
 
     def select(q: torch.Tensor, mask: torch.Tensor, explore: bool = True) -> torch.Tensor:
         m, a = q.shape
