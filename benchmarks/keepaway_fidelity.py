@@ -160,6 +160,8 @@ def main() -> None:
     parser.add_argument("--ties", default="random", choices=("random", "first"))
     parser.add_argument("--initial-q", type=float, default=0.0)
     args = parser.parse_args()
+    if args.cap_s < 0:
+        parser.error(f"--cap-s {args.cap_s} is invalid: must be 0 (never) or a positive number of seconds")
     print(json.dumps(policies(args) if args.mode == "policies" else learn(args)))
 
 

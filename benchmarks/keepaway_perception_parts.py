@@ -16,7 +16,10 @@ decision timing. Prints one JSON line per variant.
 * ``keepers_only`` / ``takers_only``: only one team acts on its world model, the other on the truth.
 
     PYTHONPATH=. python benchmarks/keepaway_perception_parts.py [--policy hand] [--preset rcss19]
-        [--episodes 500] [--variants ...]
+        [--episodes 500] [--cap-s 60] [--variants ...]
+
+``--cap-s`` cuts an episode at that length (counted at it; ``cut_share`` says how many): under the
+reference HoldBall rule a few Always Hold episodes never end, and the run would wait for them.
 """
 
 from __future__ import annotations
@@ -147,8 +150,11 @@ def main() -> None:
     parser.add_argument("--preset", default="rcss19")
     parser.add_argument("--episodes", type=int, default=500)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--cap-s", type=float, default=60.0, help="cut episodes at this length (0: never)")
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS)
     args = parser.parse_args()
+    if args.cap_s < 0:
+        parser.error(f"--cap-s {args.cap_s} is invalid: must be 0 (never) or a positive number of seconds")
     for variant in args.variants:
         install(variant)
         try:
@@ -159,20 +165,21 @@ def main() -> None:
                 batch=min(args.episodes, 500),
                 seed=args.seed,
                 progress=False,
+                cap_cycles=round(args.cap_s * 10) if args.cap_s else None,
                 perception="server",
                 hold_ball="reference",
                 decision_timing="server",
             )
         finally:
             restore()
-        keep = ("mean_s", "ci95_low", "ci95_high", "taken_share", "out_share")
+        keep = ("mean_s", "ci95_low", "ci95_high", "taken_share", "out_share", "cut_share")
         print(
             json.dumps(
                 {
                     "variant": variant,
                     "policy": args.policy,
                     "preset": args.preset,
-                    **{k: round(r[k], 3) for k in keep},
+                    **{k: round(r[k], 3) for k in keep if k in r},
                 }
             ),
             flush=True,

@@ -36,6 +36,8 @@ def main() -> None:
     parser.add_argument("--decision-timing", default="server", choices=DECISION_TIMINGS)
     parser.add_argument("--cap-s", type=float, default=300.0)
     args = parser.parse_args()
+    if not args.cap_s > 0:
+        parser.error(f"--cap-s {args.cap_s} is invalid: must be a positive number of simulated seconds")
     task = {
         "perception": args.perception,
         "hold_ball": args.hold_ball,
