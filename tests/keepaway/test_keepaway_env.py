@@ -74,20 +74,23 @@ def test_partial_reset_changes_only_flagged_fields(sync: str, options: dict) -> 
         assert (after[keys.EPISODE_CYCLES][i].item() == 0) == (sync == "any")
 
 
+@pytest.mark.parametrize("batch", [6, 1])  # at B = 1 every reset restarts every field: TorchRL's other branch
 @pytest.mark.parametrize("options", [{}, {"kernels": "cycle", **SERVER}])
 @pytest.mark.parametrize("sync", SYNCS)
-def test_maybe_reset_gives_what_torchrl_s_blend_gives(sync: str, options: dict) -> None:
+def test_maybe_reset_gives_what_torchrl_s_blend_gives(sync: str, options: dict, batch: int) -> None:
     """KeepawayEnv.maybe_reset puts the reset's entries in place; TorchRL's (here through a TransformedEnv,
     as on the taught learners' path) blends them with TensorDict.where: twin envs, the same actions, the
-    same tensordicts at every step."""
-    ours = KeepawayEnv(6, seed=4, sync=sync, **options)
-    theirs = TransformedEnv(KeepawayEnv(6, seed=4, sync=sync, **options))
+    same tensordicts at every step, with an entry of the user's own in the root as well."""
+    ours = KeepawayEnv(batch, seed=4, sync=sync, **options)
+    theirs = TransformedEnv(KeepawayEnv(batch, seed=4, sync=sync, **options))
     td_ours, td_theirs = ours.reset(), theirs.reset()
     generator = torch.Generator().manual_seed(0)
     resets = 0
-    for _ in range(120):
-        action = torch.randint(0, ours.config.num_actions, (6,), generator=generator)
+    for _ in range(120 if batch > 1 else 240):
+        action = torch.randint(0, ours.config.num_actions, (batch,), generator=generator)
+        extra = torch.full((batch, 2), 7.0)
         td_ours[keys.ACTION], td_theirs[keys.ACTION] = action, action.clone()
+        td_ours["extra"], td_theirs["extra"] = extra, extra.clone()
         out_ours, td_ours = ours.step_and_maybe_reset(td_ours)
         out_theirs, td_theirs = theirs.step_and_maybe_reset(td_theirs)
         resets += int(out_ours["next", keys.DONE].any())

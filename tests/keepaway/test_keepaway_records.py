@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from hfrl_torch.envs.keepaway.records import KeepawayRecords
@@ -47,3 +48,12 @@ def test_the_table_grows_past_its_buffer_and_survives_a_checkpoint() -> None:
     again.advance(torch.tensor([1, 1, 1]))
     again.finish(torch.tensor([True, False, False]), torch.tensor([1, 1, 1]))
     assert again.table[-1, :4].tolist() == [0, 500, int(rec.clock[0]) + 1, 1]
+
+
+def test_a_field_out_of_range_raises_instead_of_writing_past_the_records() -> None:
+    rec = KeepawayRecords(2, 3)
+    with pytest.raises(IndexError):
+        rec.decided(torch.tensor([2]), torch.tensor([0]), torch.tensor([0]))
+    with pytest.raises(IndexError):
+        rec.decided(torch.tensor([0]), torch.tensor([3]), torch.tensor([0]))
+    assert int(rec.decisions.sum()) == 0 and int(rec.holds.sum()) == 0

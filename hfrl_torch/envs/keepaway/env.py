@@ -268,10 +268,11 @@ class KeepawayEnv(EnvBase):
             return tensordict
         fresh = self._reset(tensordict.select(keys.RESET))  # done, terminated and truncated complete
         keep = ~tensordict.pop(keys.RESET).view(-1)
-        for key, value in tensordict.items():
-            if key not in fresh:
-                kept = expand_as_right(keep, value) if isinstance(value, torch.Tensor) else keep
-                tensordict.set(key, value.where(kept, torch.zeros_like(value)))
+        if bool(keep.any()):  # (every field restarted: TorchRL updates, keeping the other entries whole)
+            for key, value in tensordict.items():
+                if key not in fresh:
+                    kept = expand_as_right(keep, value) if isinstance(value, torch.Tensor) else keep
+                    tensordict.set(key, value.where(kept, torch.zeros_like(value)))
         return tensordict.update(fresh)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:

@@ -23,7 +23,8 @@ def _ints(x: torch.Tensor) -> np.ndarray:
     return x.detach().to("cpu", torch.int64).contiguous().numpy()
 
 
-_JIT = numba.njit(cache=True, nogil=True)
+# bounds checked: the indices come from callers, and a bad one raises IndexError, not corrupts the records
+_JIT = numba.njit(cache=True, nogil=True, boundscheck=True)
 
 
 @_JIT
