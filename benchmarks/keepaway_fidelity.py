@@ -31,7 +31,7 @@ from hfrl_torch.agents.sarsa import SarsaLambda
 from hfrl_torch.agents.sarsa.sarsa_numba import SarsaLambdaNumba
 from hfrl_torch.envs.keepaway import KeepawayConfig
 from hfrl_torch.envs.keepaway.benchmark_policies import play_benchmark_policy
-from hfrl_torch.envs.keepaway.records import CYCLES_PER_HOUR
+from hfrl_torch.envs.keepaway.records import CYCLES_PER_HOUR, CYCLES_PER_SECOND
 from hfrl_torch.experiment.cli import CONF_DIR
 from hfrl_torch.experiment.config import validate_train
 from hfrl_torch.experiment.registry import learner_for
@@ -65,7 +65,7 @@ def policies(args: argparse.Namespace) -> dict:
             batch=args.batch,
             seed=args.seed,
             progress=False,
-            cap_cycles=round(args.cap_s * 10) if args.cap_s else None,
+            cap_cycles=round(args.cap_s * CYCLES_PER_SECOND) if args.cap_s else None,
             **{k: v for k, v in vars(config).items() if k not in ("preset", "keepers", "takers")},
         )
         out[policy] = {k: round(v, 3) if isinstance(v, float) else v for k, v in r.items()}

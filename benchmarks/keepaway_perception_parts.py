@@ -34,6 +34,7 @@ torch.set_num_threads(1)
 import hfrl_torch.envs.keepaway.simulator as sim_mod  # noqa: E402
 from hfrl_torch.envs.keepaway import play_benchmark_policy  # noqa: E402
 from hfrl_torch.envs.keepaway.perception import own_truth  # noqa: E402
+from hfrl_torch.envs.keepaway.records import CYCLES_PER_SECOND  # noqa: E402
 
 VARIANTS = (
     "server",
@@ -165,7 +166,7 @@ def main() -> None:
                 batch=min(args.episodes, 500),
                 seed=args.seed,
                 progress=False,
-                cap_cycles=round(args.cap_s * 10) if args.cap_s else None,
+                cap_cycles=round(args.cap_s * CYCLES_PER_SECOND) if args.cap_s else None,
                 perception="server",
                 hold_ball="reference",
                 decision_timing="server",

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from hfrl_torch.agents.sarsa.sarsa import SarsaLambda
+from hfrl_torch.common.arrays import as_numpy
 from hfrl_torch.common.threads import part_range, thread_count
 from hfrl_torch.models.tile_coding import TileCoding
 from hfrl_torch.models.tile_coding_numba import table_sums, tile_indices, tile_row, tile_sum
@@ -392,13 +393,6 @@ def end_rows(
         last_action[learners[r]] = -1
 
 
-def _np(x: torch.Tensor, dtype: torch.dtype | None = None) -> np.ndarray:
-    """A contiguous CPU numpy view (or copy, when a conversion is needed) of ``x``."""
-    if dtype is not None and x.dtype != dtype:
-        x = x.to(dtype)
-    return x.detach().contiguous().numpy()
-
-
 class SarsaLambdaNumba(SarsaLambda):
     """:class:`SarsaLambda` with ``action_values``, ``decide`` and ``end_episode`` compiled (CPU only);
     the same arguments, state and random stream."""
@@ -450,9 +444,9 @@ class SarsaLambdaNumba(SarsaLambda):
         if obs.shape[-1] != coder.num_features:
             raise ValueError(f"expected {coder.num_features} state variables, got shape {tuple(obs.shape)}")
         weight, widths, tables = self._views()[:3]
-        tiles = tile_indices(_np(obs), widths, coder.tilings, coder.num_actions, coder.size)
+        tiles = tile_indices(as_numpy(obs), widths, coder.tilings, coder.num_actions, coder.size)
         q = np.empty(tiles.shape[:2], dtype=np.float64)
-        table_sums(weight, tables[_np(learners, torch.int64)], tiles, q)
+        table_sums(weight, tables[as_numpy(learners, torch.int64)], tiles, q)
         return torch.from_numpy(tiles), torch.from_numpy(q.astype(weight.dtype))
 
     def decide(
@@ -477,18 +471,20 @@ class SarsaLambdaNumba(SarsaLambda):
         draw = torch.rand(m, generator=self.generator).numpy()
         action = np.empty(m, dtype=np.int64)
         chosen = np.empty((m, coder.active_tiles), dtype=np.int64)
-        rows, dtype = _np(learners, torch.int64), coder.weight.dtype
-        common = (_np(mask, torch.bool), _np(reward, dtype), tie, noise, draw, self._params, explore)
+        rows, dtype = as_numpy(learners, torch.int64), coder.weight.dtype
+        inputs = (as_numpy(mask, torch.bool), as_numpy(reward, dtype))
+        common = (*inputs, tie, noise, draw, self._params, explore)
         state = (self._skip_matching, last_action, q_last, trace_index, trace_value, action, chosen)
         with_states = values is None
         if with_states:
             tiles_np = np.empty((m, a, coder.active_tiles), dtype=np.int64)
             q_np = np.empty((m, a), dtype=weight.dtype)
         else:
-            tiles_np, q_np = _np(values[0], torch.int64), _np(values[1], dtype)
-        choose = q_np if choose_by is None else _np(choose_by)
+            tiles_np, q_np = as_numpy(values[0], torch.int64), as_numpy(values[1], dtype)
+        choose = q_np if choose_by is None else as_numpy(choose_by)
         threads = thread_count(m, MIN_ROWS_PER_THREAD)
-        ok = decide_rows(threads, weight, widths, self._shape, tables, rows, _np(obs), with_states, tiles_np,
+        states = as_numpy(obs)
+        ok = decide_rows(threads, weight, widths, self._shape, tables, rows, states, with_states, tiles_np,
                          q_np, choose, *common, *state)  # fmt: skip
         if not ok:
             raise ValueError("decide: rows must name distinct learners")
@@ -498,6 +494,6 @@ class SarsaLambdaNumba(SarsaLambda):
     def end_episode(self, learners: torch.Tensor, reward: torch.Tensor) -> None:
         """:meth:`SarsaLambda.end_episode`, compiled."""
         weight, _, tables, last_action, q_last, trace_index, trace_value = self._views()
-        rows = _np(learners, torch.int64)
-        reward_np = _np(reward, self.coder.weight.dtype)
+        rows = as_numpy(learners, torch.int64)
+        reward_np = as_numpy(reward, self.coder.weight.dtype)
         end_rows(weight, tables, rows, reward_np, self._params, last_action, q_last, trace_index, trace_value)

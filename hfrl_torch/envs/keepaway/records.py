@@ -11,16 +11,12 @@ import numba
 import numpy as np
 import torch
 
+from hfrl_torch.common.arrays import as_numpy
 from hfrl_torch.common.stats import summarize
 
 CYCLES_PER_SECOND = 10
 CYCLES_PER_MINUTE = 60 * CYCLES_PER_SECOND
 CYCLES_PER_HOUR = 3600 * CYCLES_PER_SECOND
-
-
-def _ints(x: torch.Tensor) -> np.ndarray:
-    """``x`` as a contiguous int64 numpy array on the CPU (a view where it already is one)."""
-    return x.detach().to("cpu", torch.int64).contiguous().numpy()
 
 
 # bounds checked: the indices come from callers, and a bad one raises IndexError, not corrupts the records
@@ -130,9 +126,8 @@ class KeepawayRecords:
 
     def decided(self, fields: torch.Tensor, keeper: torch.Tensor, action: torch.Tensor) -> None:
         """Count one decision of ``keeper`` [M] (action [M]) on each of the distinct ``fields`` [M]."""
-        _count_decisions(
-            _ints(fields), _ints(keeper), _ints(action), self.decisions.numpy(), self.holds.numpy()
-        )
+        ints = (as_numpy(x, torch.int64) for x in (fields, keeper, action))
+        _count_decisions(*ints, self.decisions.numpy(), self.holds.numpy())
 
     def advance(self, episode_cycles: torch.Tensor) -> None:
         """Set the clocks from the cycles [B] of the episodes in progress (or just ended)."""
@@ -143,8 +138,8 @@ class KeepawayRecords:
         :meth:`advance` with the same step's cycles first, so that the learners' clocks include them."""
         self._reserve(self.fields)
         written = _finish_rows(
-            ended.cpu().contiguous().numpy(),
-            _ints(durations),
+            as_numpy(ended),
+            as_numpy(durations, torch.int64),
             self.fields_per_learner,
             self.finished_cycles.numpy(),
             self.clock.numpy(),

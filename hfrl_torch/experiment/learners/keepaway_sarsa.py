@@ -272,14 +272,14 @@ class SarsaKeepers(Learner):
         """One env step of every field: the deciding keepers choose and learn, the env runs on."""
         td, n, agent = self.td, self.n, self.agent_sarsa
         rows = td.get(keys.DECIDING).nonzero().squeeze(-1)
-        every = rows.numel() == self.fields  # (one field per learner: every step; no rows to pick then)
         if rows.numel():
-            pick = (lambda x: x) if every else (lambda x: x[rows])
-            keeper = pick(td.get(keys.KEEPER))
-            obs, mask = pick(td.get(keys.OBSERVATION)), pick(td.get(keys.ACTION_MASK))
+            keeper, obs, mask = td.get(keys.KEEPER), td.get(keys.OBSERVATION), td.get(keys.ACTION_MASK)
+            every = rows.numel() == self.fields  # (one field per learner: every step, nothing to pick)
+            if not every:
+                keeper, obs, mask = keeper[rows], obs[rows], mask[rows]
             slots = rows * n + keeper
             if not self.taught:
-                chosen = agent.decide(slots, obs, mask, pick(self.reward))
+                chosen = agent.decide(slots, obs, mask, self.reward if every else self.reward[rows])
             else:
                 chosen = self._fused_decision(td, rows, keeper, slots, obs, mask)
             self.records.decided(rows, keeper, chosen)
