@@ -203,6 +203,16 @@ class CompiledCycle:
         )
         return holder, kickable, must, obs
 
+    def observations(self, state: object, decider: Tensor) -> tuple[Tensor, Tensor]:
+        """Keeper ``decider`` [B]'s state variables [B, F] (float32) and teammate order [B, n - 1], as
+        the compiled cycle numbers the teammates."""
+        a = self.arrays(state)
+        obs = torch.empty(self.batch, self.config.num_state_vars, dtype=torch.float32)
+        order = torch.empty(self.batch, self.config.keepers - 1, dtype=torch.long)
+        deciders = decider.to(torch.long).contiguous().numpy()
+        K.observations(a[0], a[2], a[11], deciders, self.ip, obs.numpy(), order.numpy(), _parts(self.batch))
+        return obs, order
+
     def advance(
         self,
         state: object,

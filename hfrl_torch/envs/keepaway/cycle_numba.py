@@ -946,6 +946,16 @@ def _state_vars(kpos, tpos, decider, order, obs):
         i += 1
 
 
+@_FA
+def _observation(b, decider, pos, body, spos, ip, kpos, tpos, order, obs, obs_out):
+    """Keeper ``decider``'s state variables on field ``b`` into ``obs_out[b]`` (``order`` keeps its
+    teammate order)."""
+    _view(b, decider, pos, body, spos, ip, kpos, tpos)
+    _state_vars(kpos, tpos, decider, order, obs)
+    for i in range(obs.shape[0]):
+        obs_out[b, i] = obs[i]
+
+
 @_F
 def _policy_action(policy, obs, rng, b, ip):
     """The benchmark keepers (policies.py): 0 Always Hold, 1 Random, 2 Hand-coded."""
@@ -1369,10 +1379,30 @@ def decisions(
                 b, pos, clock, phase, spos, pass_target, prev_holder, ep, action_start, prm, ip
             )
             holder_out[b], kickable_out[b], must_out[b] = h, k, must
-            _view(b, h, pos, body, spos, ip, kpos, tpos)
-            _state_vars(kpos, tpos, h, order, obs)
-            for i in range(obs.shape[0]):
-                obs_out[b, i] = obs[i]
+            _observation(b, h, pos, body, spos, ip, kpos, tpos, order, obs, obs_out)
+
+
+@_PAR
+def observations(
+    pos: np.ndarray,
+    body: np.ndarray,
+    spos: np.ndarray,
+    decider: np.ndarray,
+    ip: np.ndarray,
+    obs_out: np.ndarray,
+    order_out: np.ndarray,
+    parts: int,
+) -> None:
+    """The state variables of keeper ``decider[b]`` on every field and its teammate order, as the
+    compiled cycle numbers the teammates (its PassBall k goes to ``order_out[b, k - 1]``)."""
+    batch = pos.shape[0]
+    for p in numba.prange(parts):
+        kpos, tpos, order, obs = view_work(ip, obs_out.shape[1])
+        lo, hi = part_range(batch, p, parts)
+        for b in range(lo, hi):
+            _observation(b, decider[b], pos, body, spos, ip, kpos, tpos, order, obs, obs_out)
+            for i in range(order_out.shape[1]):
+                order_out[b, i] = order[i]
 
 
 @_PAR

@@ -368,8 +368,12 @@ class KeepawaySimulator:
     def observe(self, decider: Tensor, state: KeepawayState | None = None) -> tuple[Tensor, Tensor]:
         """State variables [B, 4n + 2m - 3] of keeper ``decider`` [B] and its teammates by
         distance [B, n - 1]: from its world model under server perception, through the quantised
-        sensor if ``noisy_observations``."""
+        sensor if ``noisy_observations``. ``kernels="cycle"`` computes them in compiled code, so that
+        the teammate numbering is the one its cycle gives PassBall k (the two paths can order two
+        teammates at the same seen distance differently)."""
         s = self.state if state is None else state
+        if self.compiled is not None:
+            return self.compiled.observations(s, decider)
         keepers, takers = self._seen_positions(decider, s)
         return keeper_state_variables(keepers, takers, decider)
 
