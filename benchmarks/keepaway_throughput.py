@@ -35,20 +35,13 @@ import torch
 torch.set_num_threads(1)
 
 from hfrl_torch import keys  # noqa: E402
-from hfrl_torch.envs.keepaway import KeepawayConfig, KeepawayEnv, KeepawaySimulator, hand_coded_actions  # noqa: E402
+from hfrl_torch.envs.keepaway import TASKS, KeepawayConfig, KeepawayEnv, KeepawaySimulator, hand_coded_actions  # noqa: E402
 
 
 def task(preset: str, perception: str) -> dict[str, str]:
-    """The simulator options of ``perception``: server perception with the reference's HoldBall
-    rule and decision timing (the domain config's defaults), or the exact state with the spec's."""
-    if perception == "server":
-        return {
-            "preset": preset,
-            "perception": "server",
-            "hold_ball": "reference",
-            "decision_timing": "server",
-        }
-    return {"preset": preset, "perception": "exact", "hold_ball": "spec", "decision_timing": "cycle"}
+    """The simulator options of ``perception`` (``TASKS``: server perception with the reference's
+    HoldBall rule and decision timing, the domain config's defaults, or the exact state with the spec's)."""
+    return {"preset": preset, **TASKS[perception]}
 
 
 def simulator_rates(

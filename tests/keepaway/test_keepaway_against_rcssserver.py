@@ -12,10 +12,10 @@ from pathlib import Path
 
 import pytest
 
-from hfrl_torch.envs.keepaway.benchmark_policies import play_benchmark_policy
+from hfrl_torch.envs.keepaway import TASKS, play_benchmark_policy
 
 REFERENCE = Path(__file__).parent / "data" / "rcssserver19_benchmark_policies.csv"
-TASK = {"preset": "rcss19", "perception": "server", "hold_ball": "reference", "decision_timing": "server"}
+TASK = {"preset": "rcss19", **TASKS["server"]}
 
 
 def reference_episodes(policy: str) -> list[tuple[int, str]]:

@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 import torch
 
-from hfrl_torch.envs.keepaway import KeepawayConfig, KeepawaySimulator, hand_coded_actions
+from hfrl_torch.envs.keepaway import TASKS, KeepawayConfig, KeepawaySimulator, hand_coded_actions
 from hfrl_torch.envs.keepaway.benchmark_policies import play_benchmark_policy
 from hfrl_torch.envs.keepaway.params import resolve_kernels
 from hfrl_torch.envs.keepaway.simulator import KeepawayState
 
-SERVER = {"perception": "server", "hold_ball": "reference", "decision_timing": "server"}
-EXACT = {"perception": "exact", "hold_ball": "spec", "decision_timing": "cycle"}
+SERVER = TASKS["server"]
+EXACT = TASKS["exact"]
 TOLERANCE = 1e-3  # metres, m/cycle, radians: float32 rounding after one cycle is ~1e-6
 
 

@@ -13,6 +13,7 @@ from hfrl_torch import keys
 from hfrl_torch.envs.keepaway import (
     ENV_ID,
     EPISODE_END_REWARDS,
+    TASKS,
     KeepawayConfig,
     KeepawayEnv,
     KeepawaySimulator,
@@ -29,7 +30,7 @@ torch.set_num_threads(1)
 SYNCS = ("all", "any")
 
 
-SERVER = {"perception": "server", "hold_ball": "reference", "decision_timing": "server"}
+SERVER = TASKS["server"]
 
 
 @pytest.mark.parametrize("sync", SYNCS)

@@ -13,7 +13,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hfrl_torch.envs.keepaway import KeepawayConfig, KeepawaySimulator, hand_coded_actions
+from hfrl_torch.envs.keepaway import TASKS, KeepawayConfig, KeepawaySimulator, hand_coded_actions
 from hfrl_torch.envs.keepaway.params import physics_preset, resolve_kernels
 from hfrl_torch.envs.keepaway.physics import resolve_collisions
 from hfrl_torch.envs.keepaway.skills import (
@@ -157,7 +157,7 @@ def test_coincident_objects_separate_alike() -> None:
     assert numba_out[2].all()
 
 
-SERVER = {"perception": "server", "hold_ball": "reference", "decision_timing": "server"}
+SERVER = TASKS["server"]
 
 
 @pytest.mark.parametrize(

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from hfrl_torch.common.errors import ConfigError
-from hfrl_torch.envs.keepaway import KeepawayConfig, KeepawaySimulator, hand_coded_actions
+from hfrl_torch.envs.keepaway import TASKS, KeepawayConfig, KeepawaySimulator, hand_coded_actions
 from hfrl_torch.envs.keepaway.params import physics_preset
 from hfrl_torch.envs.keepaway.perception import (
     COLLISION_BALL_GAP,
@@ -37,7 +37,7 @@ from hfrl_torch.experiment.factories import make_keepaway_config
 
 torch.set_num_threads(1)
 PHYSICS = physics_preset("rcss19")
-SERVER = {"perception": "server", "hold_ball": "reference", "decision_timing": "server"}
+SERVER = TASKS["server"]
 
 
 def scene(objects: list[tuple[float, float]], bodies: list[float] | None = None, vel=None):

@@ -9,7 +9,7 @@ from hfrl_torch.envs.keepaway.benchmark_policies import (
 )
 from hfrl_torch.envs.keepaway.env import EPISODE_END_REWARDS, STEP_CYCLES, KeepawayEnv
 from hfrl_torch.envs.keepaway.gym_env import ENV_ID, KeepawayGymEnv, register_keepaway
-from hfrl_torch.envs.keepaway.params import PRESETS, KeepawayConfig, PhysicsParams, physics_preset
+from hfrl_torch.envs.keepaway.params import PRESETS, TASKS, KeepawayConfig, PhysicsParams, physics_preset
 from hfrl_torch.envs.keepaway.policies import (
     POLICIES,
     hand_coded_actions,
@@ -27,6 +27,7 @@ __all__ = [
     "POLICIES",
     "PRESETS",
     "STEP_CYCLES",
+    "TASKS",
     "CycleOutcome",
     "Decision",
     "KeepawayConfig",

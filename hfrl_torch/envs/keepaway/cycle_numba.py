@@ -1397,12 +1397,10 @@ def observations(
     compiled cycle numbers the teammates (its PassBall k goes to ``order_out[b, k - 1]``)."""
     batch = pos.shape[0]
     for p in numba.prange(parts):
-        kpos, tpos, order, obs = view_work(ip, obs_out.shape[1])
+        kpos, tpos, _, obs = view_work(ip, obs_out.shape[1])
         lo, hi = part_range(batch, p, parts)
         for b in range(lo, hi):
-            _observation(b, decider[b], pos, body, spos, ip, kpos, tpos, order, obs, obs_out)
-            for i in range(order_out.shape[1]):
-                order_out[b, i] = order[i]
+            _observation(b, decider[b], pos, body, spos, ip, kpos, tpos, order_out[b], obs, obs_out)
 
 
 @_PAR

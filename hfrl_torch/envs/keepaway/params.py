@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
+from types import MappingProxyType
 
 import torch
 
@@ -65,6 +66,18 @@ KERNELS = ("auto", "numba", "torch", "cycle")
 PERCEPTIONS = ("exact", "server")
 HOLD_RULES = ("spec", "reference")
 DECISION_TIMINGS = ("cycle", "server")
+
+# The two tasks' perception options, for ``KeepawayConfig(**TASKS[name])``: "server" is the reference's
+# (each player on its own world model, BasicPlayer's HoldBall, the players' decision timing; the domain
+# config's default), "exact" the true state every cycle with the spec's HoldBall and timing.
+TASKS = MappingProxyType(
+    {
+        "server": MappingProxyType(
+            {"perception": "server", "hold_ball": "reference", "decision_timing": "server"}
+        ),
+        "exact": MappingProxyType({"perception": "exact", "hold_ball": "spec", "decision_timing": "cycle"}),
+    }
+)
 
 
 def resolve_kernels(kernels: str, device: torch.device, dtype: torch.dtype = torch.float32) -> str:
