@@ -75,7 +75,8 @@ def test_defaults_are_valid():
         ),
         (
             "agent=pg fusion=linear trainer=oracle fusion.weight=search",
-            "fusion.weight=search with agent=pg fusion=linear is invalid: it is CE's",
+            "fusion.weight=search with agent=pg fusion=linear is invalid: it needs a learner that searches "
+            "the weight as part of its own search (agent=cem)",
         ),
         (
             "fusion=reward_shaping trainer=oracle fusion.weight=search",
@@ -232,10 +233,11 @@ def test_tamer_and_trainer_bad_values(overrides, message):
 
 
 def test_adaptive_weight_is_each_learners_own_estimator():
-    from hfrl_torch.experiment.factories import make_weight_schedule, weight_estimator
+    from hfrl_torch.experiment.registry import learner_for
     from hfrl_torch.fusion.bandit import BanditWeight
     from hfrl_torch.fusion.paired import PairedWeight
     from hfrl_torch.fusion.schedules import SearchedWeight
+    from hfrl_torch.fusion.weights import make_weight, weight_kind
 
     for overrides, kind, cls in (
         (["fusion=linear"], "paired", PairedWeight),  # CE compares weights on the same test games
@@ -248,8 +250,9 @@ def test_adaptive_weight_is_each_learners_own_estimator():
         weight = [] if any(o.startswith("fusion.weight") for o in overrides) else ["fusion.weight=adaptive"]
         cfg = _cfg("train", *overrides, *weight)
         validate_train(cfg)
-        assert weight_estimator(cfg) == kind
-        assert isinstance(make_weight_schedule(cfg, 3), cls)
+        evidence = learner_for(cfg.agent.name, cfg.domain.name).weight_evidence
+        assert weight_kind(cfg, evidence) == kind
+        assert isinstance(make_weight(cfg, 3, evidence), cls)
 
 
 def test_trainer_factory_builds_the_simulated_trainers():

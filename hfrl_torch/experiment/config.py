@@ -33,8 +33,9 @@ from hfrl_torch.envs.keepaway.params import (
     KeepawayConfig,
 )
 from hfrl_torch.envs.tetris.env import ENGINES
-from hfrl_torch.fusion.schedules import ADAPTIVE_WEIGHTS
-from hfrl_torch.fusion.schemes import FUSIONS, OPTIONS
+from hfrl_torch.experiment.registry import learner_for, learners
+from hfrl_torch.fusion.schemes import FUSIONS
+from hfrl_torch.fusion.weights import UNWEIGHTED, check_weight
 from hfrl_torch.interactive.messages import MAX_SPEED, MIN_SPEED
 from hfrl_torch.models.tile_coding import MAX_SIZE
 from hfrl_torch.trainers.departure import LEAVE_UNITS
@@ -48,7 +49,6 @@ FEATURE_SETS = ("bt", "knox", "dellacherie", "dt")
 PG_FUSIONS = ("none", "linear", "annealed")
 KEY_NAMES = ("good", "bad", "pause", "presence")
 NORMALISE = ("true", "false", "spread", "null")
-WEIGHTS = ("trust", *ADAPTIVE_WEIGHTS)
 MAX_TABLE_GIB = 16.0  # refuse configs whose keepaway weight tables alone would need more memory than this
 RESUMABLE = (
     "agent.iterations",
@@ -343,32 +343,12 @@ def check_human(cfg: DictConfig, model: str) -> None:
 
 
 def check_fusion(cfg: DictConfig) -> None:
-    """``fusion``: the scheme, its weight (``trust``, ``adaptive``, a number >= 0), annealing, the scale."""
+    """``fusion``: the scheme, its weight (checked by the weight's kind, for this learner), the scale."""
     name = require_choice(cfg, "fusion.name", FUSIONS)
-    if name in ("none", "human_only"):  # the weight is unused; still one of the allowed kinds (sweeps set it)
-        weight = OmegaConf.select(cfg, "fusion.weight", default="trust")
-        if isinstance(weight, str) and weight not in WEIGHTS:
-            raise ConfigError(
-                f"fusion.weight={weight!r} is invalid; allowed: {', '.join(WEIGHTS)}, or a number >= 0"
-            )
-        if not isinstance(weight, str):
-            require_float(cfg, "fusion.weight", 0.0)
+    learner = learner_for(str(cfg.agent.name), str(cfg.domain.name))
+    check_weight(cfg, learner.weight_evidence, evidence_givers())
+    if name in UNWEIGHTED:
         return
-    if name == "annealed":
-        require_float(cfg, "fusion.weight", 0.0)
-        require_float(cfg, "fusion.factor", 1e-9, 1.0)
-    else:
-        weight = OmegaConf.select(cfg, "fusion.weight")
-        if weight == "trust":
-            require_float(cfg, "fusion.initial_trust", 0.0, 1.0)  # a rate of agreement
-        elif weight in ADAPTIVE_WEIGHTS:
-            check_adaptive(cfg, weight)
-        elif isinstance(weight, str):
-            raise ConfigError(
-                f"fusion.weight={weight!r} is invalid; allowed: {', '.join(WEIGHTS)}, or a number >= 0"
-            )
-        else:
-            require_float(cfg, "fusion.weight", 0.0)
     if "normalise" in cfg.fusion:
         value = OmegaConf.select(cfg, "fusion.normalise")
         if not (value is None or isinstance(value, bool) or value == "spread"):
@@ -379,41 +359,13 @@ def check_fusion(cfg: DictConfig) -> None:
             )
 
 
-def check_adaptive(cfg: DictConfig, weight: str) -> None:
-    """``fusion.adaptive`` for ``fusion.weight`` adaptive, bandit or search: the bandit's arms and discount,
-    CE's search of the weight (a decision-level rule only: a shaped fitness grows with its weight)."""
-    name = cfg.fusion.name
-    if weight in ("search", "paired") and (cfg.agent.name != "cem" or OPTIONS[name].reward != "none"):
-        raise ConfigError(
-            f"fusion.weight={weight} with agent={cfg.agent.name} fusion={name} is invalid: it is CE's, for a "
-            "decision-level rule (agent=cem, fusion=linear, exponential, control_sharing, action_biasing); "
-            "use adaptive or bandit"
-        )
-    if "adaptive" not in cfg.fusion:
-        raise ConfigError(
-            f"fusion.weight={weight} needs fusion.adaptive (arms, discount, prior_trust, prior_count, "
-            "paired_arms, paired_discount, search_std)"
-        )
-    for key in ("arms", "paired_arms"):
-        arms = OmegaConf.select(cfg, f"fusion.adaptive.{key}")
-        values = list(arms) if OmegaConf.is_list(arms) else None
-        if (
-            values is None
-            or len(values) < 2
-            or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in values)
-            or not all(math.isfinite(v) and v >= 0 for v in values)
-            or len(set(values)) != len(values)
-        ):
-            raise ConfigError(
-                f"fusion.adaptive.{key}={arms!r} is invalid; allowed: a list of two or more different "
-                "weights >= 0"
-            )
-    require_float(cfg, "fusion.adaptive.discount", 1e-6, 1.0)
-    require_float(cfg, "fusion.adaptive.paired_discount", 0.0, 0.999)
-    require_float(cfg, "fusion.adaptive.prior_trust", 0.0)
-    require_float(cfg, "fusion.adaptive.prior_count", 1e-6)
-    require_float(cfg, "fusion.adaptive.search_std", 1e-6)
-    require_float(cfg, "fusion.initial_trust", 0.0)  # the search's first mean weight
+def evidence_givers() -> dict[str, list[str]]:
+    """For each kind of learner evidence a weight may need, the agents whose learners give it."""
+    givers: dict[str, list[str]] = {}
+    for learner in learners():
+        for evidence in sorted(learner.weight_evidence):
+            givers.setdefault(evidence, []).append(learner.agent)
+    return givers
 
 
 def check_interactive(cfg: DictConfig) -> None:

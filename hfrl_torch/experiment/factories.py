@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 
 import numba
 import torch
@@ -29,18 +29,9 @@ from hfrl_torch.envs.tetris.features import feature_id, feature_size
 from hfrl_torch.envs.tetris.rules import TetrisRules
 from hfrl_torch.feedback.credit import CreditModel, GammaDelay, PreviousStep, UniformDelay
 from hfrl_torch.feedback.log import FeedbackLog
-from hfrl_torch.fusion.bandit import BanditWeight
 from hfrl_torch.fusion.fusion import Fusion
-from hfrl_torch.fusion.paired import PairedWeight
-from hfrl_torch.fusion.schedules import (
-    ADAPTIVE_WEIGHTS,
-    AnnealedWeight,
-    ConstantWeight,
-    SearchedWeight,
-    TrustWeight,
-    WeightSchedule,
-)
-from hfrl_torch.fusion.schemes import OPTIONS
+from hfrl_torch.fusion.schedules import ConstantWeight
+from hfrl_torch.fusion.weights import make_weight
 from hfrl_torch.interactive.explain import WEIGHT_NAME, weight_sentence
 from hfrl_torch.interactive.keepaway_live import BrowserKeeperTrainer
 from hfrl_torch.interactive.live import DEFAULT_SPEED, KEY_NAMES, LiveTeaching
@@ -288,24 +279,16 @@ def make_keeper_trainer(
     )
 
 
-def make_live_teaching(cfg: DictConfig, log: FeedbackLog, view: str) -> LiveTeaching:
+def make_live_teaching(cfg: DictConfig, log: FeedbackLog, view: str, fusion: Fusion) -> LiveTeaching:
     """The browser trainer's page server for ``view`` (tetris or keepaway), started; Tetris presses are
-    drained by a ``BrowserTetrisTrainer`` (keepaway's trainer is ``make_keeper_trainer``'s)."""
+    drained by a ``BrowserTetrisTrainer`` (keepaway's trainer is ``make_keeper_trainer``'s). The page says
+    what sets ``fusion``'s weight in the fusion's own words."""
     t = cfg.trainer
     speed = DEFAULT_SPEED[view] if t.actions_per_s is None else float(t.actions_per_s)
     session = TeachingSession(actions_per_s=speed, reconnect_s=float(t.reconnect_wait_s))
-    f = cfg.fusion
-    fixed = OmegaConf.select(cfg, "fusion.weight")  # a number: a fixed weight or an annealed one's start
     session.info = {
         "weight_name": WEIGHT_NAME,
-        "weight_sentence": weight_sentence(
-            str(f.name),
-            make_weight_schedule(cfg).kind,
-            view,
-            value=float(fixed) if isinstance(fixed, (int, float)) and not isinstance(fixed, bool) else None,
-            factor=OmegaConf.select(cfg, "fusion.factor"),
-            arms=list(f.adaptive.arms) if "adaptive" in f else None,
-        ),
+        "weight_sentence": weight_sentence(str(cfg.fusion.name), fusion.describe_weight, view),
     }
     server = TeachingServer(
         session,
@@ -326,45 +309,6 @@ def make_live_teaching(cfg: DictConfig, log: FeedbackLog, view: str) -> LiveTeac
 # ------------------------------------------------------------------------------ fusion
 
 
-def make_weight_schedule(cfg: DictConfig, learners: int = 1) -> WeightSchedule:
-    """The weight on H^ of ``fusion`` for each of ``learners``: the trust factor (eq. 4.4), annealed (Knox &
-    Stone), adaptive (a bandit on episode returns, or CE's own search) or fixed."""
-    f = cfg.fusion
-    if f.name in ("none", "human_only"):
-        return ConstantWeight([0.0] * learners)
-    if f.name == "annealed":
-        return AnnealedWeight([float(f.weight)] * learners, float(f.factor))
-    if f.weight == "trust":
-        return TrustWeight.from_initial(float(f.initial_trust), learners)
-    if f.weight in ADAPTIVE_WEIGHTS:
-        a = f.adaptive
-        estimator = weight_estimator(cfg)
-        if estimator == "search":
-            return SearchedWeight([float(f.initial_trust)] * learners)
-        if estimator == "paired":
-            return PairedWeight(learners, list(a.paired_arms), float(a.paired_discount))
-        return BanditWeight(
-            learners,
-            list(a.arms),
-            float(a.discount),
-            prior_count=float(a.prior_count),
-            prior_trust=float(a.prior_trust),
-            seed=2 * int(cfg.seed) + 7,
-        )
-    return ConstantWeight([float(f.weight)] * learners)
-
-
-def weight_estimator(cfg: DictConfig) -> str:
-    """What ``fusion.weight=adaptive`` means for this learner: ``paired`` for CE with a decision-level rule
-    (the weights compared on the same test games), else ``bandit``; ``bandit``, ``paired`` and ``search``
-    name one."""
-    w = cfg.fusion.weight
-    if w != "adaptive":
-        return str(w)
-    comparable = cfg.agent.name == "cem" and OPTIONS[cfg.fusion.name].reward == "none"
-    return "paired" if comparable else "bandit"
-
-
 def fusion_scaling(cfg: DictConfig) -> str:
     """How R and H^ are put on one scale (``fusion.normalise``): true rescales both per decision, false fuses
     the raw values; null is the domain's way (Tetris CE: per decision; keepaway: H^ times Q's running spread;
@@ -379,12 +323,19 @@ def fusion_scaling(cfg: DictConfig) -> str:
     return "none" if cfg.agent.name == "pg" else "decision"
 
 
-def make_fusion(cfg: DictConfig, learners: int = 1, seed: int = 0, option: str | None = None) -> Fusion:
-    """The one fusion component of a run: ``fusion``'s rules, weights and scale, for ``learners``
-    (``option``: a learner's own rule instead, e.g. TAMER's ``human_only``)."""
+def make_fusion(
+    cfg: DictConfig,
+    learners: int = 1,
+    seed: int = 0,
+    option: str | None = None,
+    evidence: Collection[str] = (),
+) -> Fusion:
+    """The one fusion component of a run: ``fusion``'s rules, weights and scale, for ``learners`` that give
+    ``evidence`` for the weight (``Learner.weight_evidence``; ``option``: a learner's own rule instead, e.g.
+    TAMER's ``human_only``)."""
     if option is not None and option != cfg.fusion.name:
         return Fusion.from_option(option, ConstantWeight([0.0] * learners), seed=seed)
-    schedule = make_weight_schedule(cfg, learners)
+    schedule = make_weight(cfg, learners, evidence)
     return Fusion.from_option(cfg.fusion.name, schedule, scaling=fusion_scaling(cfg), seed=seed)
 
 

@@ -32,3 +32,8 @@ def learner_for(agent: str, domain: str = "tetris") -> type[Learner]:
         allowed = sorted({*LEARNERS, *(a for _, a in DOMAIN_LEARNERS)})
         raise KeyError(f"agent={agent!r} has no learner; allowed: {', '.join(allowed)}")
     return LEARNERS[agent]
+
+
+def learners() -> list[type[Learner]]:
+    """Every learner class, each once."""
+    return [*LEARNERS.values(), *DOMAIN_LEARNERS.values()]

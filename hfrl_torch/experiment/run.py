@@ -114,6 +114,8 @@ class Learner(ABC):
     domain: ClassVar[str] = "tetris"
     agent: ClassVar[str] = ""
     unit: ClassVar[str] = "it"  # of the progress bar
+    # what the learner gives the weight on H^ beyond episode ends (keys of fusion.weights.EVIDENCE)
+    weight_evidence: ClassVar[frozenset[str]] = frozenset()
 
     def __init__(self, cfg: DictConfig, run_dir: Path, checkpoint: dict[str, Any] | None = None) -> None:
         self.cfg, self.run_dir = cfg, run_dir

@@ -117,6 +117,9 @@ class BanditWeight(WeightSchedule):
         performance: float | Sequence[float] | Tensor | None = None,
         match_rate: Any = None,
         ended: Tensor | Sequence[bool] | None = None,
+        *,
+        compared: Tensor | None = None,
+        searched: Tensor | None = None,
     ) -> None:
         """Score the flagged learners' episodes at their current arms, discount, and draw their next arms."""
         if performance is None:
@@ -189,6 +192,14 @@ class BanditWeight(WeightSchedule):
         self.count, self.total, self.square = (s.clone() for s in stats)
         self.arm, self.discount, self.prior_count = arm.clone(), discount, prior_count
         self.prior_trust, self.teaching = prior_trust, teaching.clone()
+
+    def describe(self, score: str, episode: str) -> str:
+        arms = ", ".join(f"{a:g}" for a in self.arms.tolist())
+        return (
+            f"w is chosen among {arms} by a bandit (fusion.weight=adaptive) that favours the weight whose "
+            f"recent {episode}s went best, judged on {score}. It measures how much your teaching helps, "
+            "not you."
+        )
 
     def __repr__(self) -> str:
         return f"BanditWeight(arms={self.arms.tolist()}, discount={self.discount}, learners={self.learners})"

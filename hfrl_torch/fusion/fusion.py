@@ -235,19 +235,38 @@ class Fusion:
         ended: Tensor | None = None,
         performance: Tensor | float | None = None,
         taught: Tensor | None = None,
+        *,
+        compared: Tensor | None = None,
+        searched: Tensor | None = None,
     ) -> None:
         """The flagged learners' episodes ended (bool [L]; None: all) with ``performance`` (lines, or hold
         time) and ``taught`` (bool [L]: the trainer gave feedback in them; None: not said): eq. 4.4 with their
         match rates for the trust factor, the episode's score for the bandit, one step for the annealed
-        weight; then their match counts start again."""
+        weight, ``compared`` (test games at :meth:`compared_weights`) for the paired comparison, ``searched``
+        (the weight the learner's search settled on) for the searched weight; then the match counts restart.
+        """
         flags = torch.ones(self.learners, dtype=torch.bool) if ended is None else ended.cpu().to(torch.bool)
         if taught is not None:
             self.schedule.taught(taught.cpu().to(torch.bool).reshape(-1).expand(self.learners), flags)
         perf = None
         if performance is not None:
             perf = torch.as_tensor(performance, dtype=torch.float64).reshape(-1).expand(self.learners)
-        self.schedule.end_episode(perf, self.matches.rates(), flags)
+        self.schedule.end_episode(perf, self.matches.rates(), flags, compared=compared, searched=searched)
         self.matches.reset(flags)
+
+    def compared_weights(self) -> Tensor | None:
+        """The weights [K] whose test games the learner passes back as ``end_episode(compared=...)``, on the
+        same games; None: the weight needs no comparison."""
+        return self.schedule.compared_weights()
+
+    @property
+    def searches_weight(self) -> bool:
+        """Whether the learner searches the weight itself and passes it as ``end_episode(searched=...)``."""
+        return self.schedule.searched
+
+    def describe_weight(self, score: str, episode: str) -> str:
+        """What sets the weight, in plain words for the teaching page (see ``WeightSchedule.describe``)."""
+        return self.schedule.describe(score, episode)
 
     def stats(self) -> dict[str, float]:
         """Means over learners of the weight and R's spread, for the logs."""

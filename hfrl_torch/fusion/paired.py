@@ -65,6 +65,24 @@ class PairedWeight(WeightSchedule):
     def _parameters_at(self, episode: Tensor) -> Tensor:
         return self._lay(self.arms[self.arm], episode)
 
+    def compared_weights(self) -> Tensor:
+        return self.arms.clone()
+
+    def end_episode(
+        self,
+        performance: float | Sequence[float] | Tensor | None = None,
+        match_rate: Any = None,
+        ended: Tensor | Sequence[bool] | None = None,
+        *,
+        compared: Tensor | None = None,
+        searched: Tensor | None = None,
+    ) -> None:
+        """Fold in ``compared`` ([L, K, G], the test games at every arm; None: no comparison this time) and
+        count the episode."""
+        if compared is not None:
+            self.compare(compared)
+        super().end_episode(ended=ended)
+
     @staticmethod
     def score(lines: Tensor) -> Tensor:
         """What a set of test games scores: the mean of ``log(1 + lines)`` over its last dimension."""
@@ -107,6 +125,14 @@ class PairedWeight(WeightSchedule):
         if bool(((arm < 0) | (arm >= arms.numel())).any()):
             raise CheckpointError(f"bad PairedWeight state: arm indices {arm.tolist()} out of range")
         self.scores, self.arm, self.discount = scores.clone(), arm.clone(), discount
+
+    def describe(self, score: str, episode: str) -> str:
+        arms = ", ".join(f"{a:g}" for a in self.arms.tolist())
+        return (
+            f"w is chosen among {arms} (fusion.weight=adaptive): after each practice round the agent plays "
+            f"the same test {episode}s at every one of these weights and keeps the weight whose {episode}s "
+            f"scored best, judged on {score}. It measures how much your teaching helps the score, not you."
+        )
 
     def __repr__(self) -> str:
         return f"PairedWeight(arms={self.arms.tolist()}, discount={self.discount})"

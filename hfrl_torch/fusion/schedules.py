@@ -26,7 +26,6 @@ from hfrl_torch.common.errors import CheckpointError
 from hfrl_torch.fusion.trust import IncrementalTrust
 
 __all__ = [
-    "ADAPTIVE_WEIGHTS",
     "AnnealedWeight",
     "ConstantWeight",
     "SearchedWeight",
@@ -36,8 +35,6 @@ __all__ = [
 ]
 
 MatchRateLike = float | None
-# fusion.weight's estimated options: adaptive (each learner's own estimator) and the estimators by name
-ADAPTIVE_WEIGHTS = ("adaptive", "bandit", "paired", "search")
 
 
 def _is_number(x: object) -> bool:
@@ -95,6 +92,7 @@ class WeightSchedule(ABC):
     """
 
     kind: str = ""
+    searched: bool = False  # the learner sets the weight by its own search (evidence ``searched``)
 
     def __init__(self, learners: int) -> None:
         self.learners = int(learners)
@@ -137,13 +135,29 @@ class WeightSchedule(ABC):
         performance: float | Sequence[float] | Tensor | None = None,
         match_rate: MatchRateLike | Sequence[MatchRateLike] | Tensor = None,
         ended: Tensor | Sequence[bool] | None = None,
+        *,
+        compared: Tensor | None = None,
+        searched: Tensor | None = None,
     ) -> None:
         """An episode ended for the learners flagged in ``ended`` (bool ``[L]``; None: all of them).
 
-        ``performance`` (lines, or hold time) and ``match_rate`` (the ``m`` of eq. 4.4, None or NaN when no
-        decisions were compared) are what the trust factor needs; other schedules only count the episode.
+        The evidence each kind of weight reads: ``performance`` (lines, or hold time) and ``match_rate`` (the
+        ``m`` of eq. 4.4, None or NaN when no decisions were compared) for the trust factor and the bandit;
+        ``compared`` ([L, K, G]: G test games at each of :meth:`compared_weights`' K weights, on the same
+        games) for the paired comparison; ``searched`` ([L]: the weight the learner's own search settled
+        on) for the searched weight. A schedule ignores what it does not read; every one counts the episode.
         """
         self.episodes += _ended(ended, self.learners).to(torch.int64)
+
+    def compared_weights(self) -> Tensor | None:
+        """The weights [K] the learner should play its test games at, on the same games, and pass back as
+        ``end_episode(compared=...)``; None: this weight needs no such comparison."""
+        return None
+
+    @abstractmethod
+    def describe(self, score: str, episode: str) -> str:
+        """What sets the weight, in one or two plain sentences for the teaching page (``score``: what an
+        episode is judged by, e.g. "the lines of its games"; ``episode``: "game" or "episode")."""
 
     def taught(self, taught: Tensor, ended: Tensor | None = None) -> None:  # noqa: B027  (optional hook)
         """Told whether the trainer gave feedback in the flagged learners' episodes that just ended (bool
@@ -204,6 +218,11 @@ class ConstantWeight(WeightSchedule):
             )
         self.weight = weight
 
+    def describe(self, score: str, episode: str) -> str:
+        values = sorted(set(self.weight.tolist()))
+        shown = f"={values[0]:g}" if len(values) == 1 else ""
+        return f"w is fixed for this run (fusion.weight{shown}): it does not change."
+
     def __repr__(self) -> str:
         return f"ConstantWeight({self.weight.tolist()})"
 
@@ -249,6 +268,14 @@ class AnnealedWeight(WeightSchedule):
             )
         self.w0, self.factor = w0, factor
 
+    def describe(self, score: str, episode: str) -> str:
+        start = sorted(set(self.w0.tolist()))
+        began = f"started at {start[0]:g}" if len(start) == 1 else "started at its first value"
+        return (
+            f"w {began} and shrinks by a factor {self.factor:g} after every {episode} "
+            "(Knox & Stone's annealing), whatever you press."
+        )
+
     def __repr__(self) -> str:
         return f"AnnealedWeight(w0={self.w0.tolist()}, factor={self.factor})"
 
@@ -291,6 +318,9 @@ class TrustWeight(WeightSchedule):
         performance: float | Sequence[float] | Tensor | None = None,
         match_rate: MatchRateLike | Sequence[MatchRateLike] | Tensor = None,
         ended: Tensor | Sequence[bool] | None = None,
+        *,
+        compared: Tensor | None = None,
+        searched: Tensor | None = None,
     ) -> None:
         """Eq. 4.4 for each flagged learner: ``trust = (l1 * trust + l2 * m) / (l1 + l2)``.
 
@@ -318,6 +348,13 @@ class TrustWeight(WeightSchedule):
         for t, s in zip(self.trusts, trusts, strict=True):
             t.load_state_dict(s)
 
+    def describe(self, score: str, episode: str) -> str:
+        return (
+            "w is the trust factor (thesis eq. 4.4): how often the move the agent's model of your presses "
+            f"rates best matches the move its own value rates best, weighted by {score}. It measures that "
+            f"agreement, not you, and changes after every {episode} with or without presses."
+        )
+
     def __repr__(self) -> str:
         return f"TrustWeight({[t.value for t in self.trusts]})"
 
@@ -331,11 +368,33 @@ class SearchedWeight(ConstantWeight):
     """
 
     kind = "search"
+    searched = True
+
+    def end_episode(
+        self,
+        performance: float | Sequence[float] | Tensor | None = None,
+        match_rate: MatchRateLike | Sequence[MatchRateLike] | Tensor = None,
+        ended: Tensor | Sequence[bool] | None = None,
+        *,
+        compared: Tensor | None = None,
+        searched: Tensor | None = None,
+    ) -> None:
+        """The learner's search settled on ``searched`` [L] (None: the weight is kept)."""
+        if searched is not None:
+            self.set(searched)
+        super().end_episode(ended=ended)
 
     def set(self, w: float | Sequence[float] | Tensor) -> None:
         """The searched weight of each learner from now on (clamped at 0: a negative weight is no H^)."""
         value = torch.as_tensor(w, dtype=torch.float64).detach().cpu().reshape(-1).clamp(min=0.0)
         self.weight = _weights(value.expand(self.learners).clone(), "SearchedWeight w")
+
+    def describe(self, score: str, episode: str) -> str:
+        return (
+            "w is searched by the cross-entropy method as one more setting (fusion.weight=search): each "
+            "practice round keeps the weights whose games scored best. It measures how much your "
+            "teaching helps the score, not you."
+        )
 
     def __repr__(self) -> str:
         return f"SearchedWeight({self.weight.tolist()})"

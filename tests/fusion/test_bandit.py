@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from hfrl_torch.common.errors import CheckpointError
+from hfrl_torch.fusion import Fusion, TrustWeight
 from hfrl_torch.fusion.bandit import DEFAULT_ARMS, BanditWeight
 from hfrl_torch.fusion.paired import PairedWeight
 from hfrl_torch.fusion.schedules import SearchedWeight
@@ -243,3 +244,20 @@ def test_paired_state_round_trips() -> None:
         PairedWeight(1, (0.0, 2.0)).load_state_dict(a.state_dict())
     with pytest.raises(ValueError, match="discount"):
         PairedWeight(1, discount=1.0)
+
+
+def test_the_learners_evidence_reaches_the_weight_through_the_fusion():
+    """CE never touches its schedule: its comparison and its search arrive through ``Fusion.end_episode``."""
+    paired = Fusion.from_option("linear", PairedWeight(1, [0.0, 0.25, 1.0], discount=0.0))
+    assert paired.compared_weights().tolist() == [0.0, 0.25, 1.0] and not paired.searches_weight
+    games = torch.tensor([[[5.0, 5.0], [30.0, 40.0], [1.0, 2.0]]])  # [L, K, G]: the middle arm won
+    paired.end_episode(performance=10.0, compared=games)
+    assert paired.weight().tolist() == [0.25]
+    paired.end_episode(performance=10.0)  # no comparison this time: the arm is kept
+    assert paired.weight().tolist() == [0.25]
+    searched = Fusion.from_option("linear", SearchedWeight(0.5))
+    assert searched.searches_weight and searched.compared_weights() is None
+    searched.end_episode(performance=10.0, searched=torch.tensor([1.75]))
+    assert searched.weight().tolist() == [1.75]
+    trust = Fusion.from_option("linear", TrustWeight.from_initial(0.5))
+    assert trust.compared_weights() is None and not trust.searches_weight

@@ -9,6 +9,10 @@ import time
 import pytest
 
 from hfrl_torch.feedback.events import FeedbackQueueClosedError
+from hfrl_torch.fusion import AnnealedWeight, ConstantWeight, Fusion, TrustWeight
+from hfrl_torch.fusion.bandit import BanditWeight
+from hfrl_torch.fusion.paired import PairedWeight
+from hfrl_torch.fusion.schedules import SearchedWeight
 from hfrl_torch.interactive.explain import weight_sentence
 from hfrl_torch.interactive.messages import Feedback, Finish, Pause, Presence, Speed
 from hfrl_torch.interactive.session import PAUSED_SOURCE, SOURCE, NotTaken, TeachingSession
@@ -174,20 +178,29 @@ def test_credit_time_and_the_timeline():
 
 
 @pytest.mark.parametrize(
-    ("scheme", "kind", "said"),
+    ("scheme", "schedule", "said"),
     [
-        ("linear", "trust", "trust factor (thesis eq. 4.4)"),
-        ("linear", "constant", "fixed for this run (fusion.weight=0.5)"),
-        ("annealed", "annealed", "shrinks by a factor 0.98"),
-        ("linear", "search", "searched by the cross-entropy method"),
-        ("reward_shaping", "bandit", "among 0, 0.1, 1 by a bandit"),
-        ("human_only", "constant", "alone (fusion=human_only)"),
+        ("linear", TrustWeight.from_initial(0.5), "trust factor (thesis eq. 4.4)"),
+        ("linear", ConstantWeight(0.5), "fixed for this run (fusion.weight=0.5)"),
+        ("annealed", AnnealedWeight(1.0, 0.98), "shrinks by a factor 0.98"),
+        ("linear", SearchedWeight(1.0), "searched by the cross-entropy method"),
+        ("reward_shaping", BanditWeight(1, [0.0, 0.1, 1.0]), "among 0, 0.1, 1 by a bandit"),
+        ("linear", PairedWeight(1, [0.0, 0.25, 1.0]), "chosen among 0, 0.25, 1 (fusion.weight=adaptive)"),
+        ("human_only", ConstantWeight(0.0), "alone (fusion=human_only)"),
     ],
 )
-def test_the_weight_is_explained_whatever_sets_it(scheme, kind, said):
-    text = weight_sentence(
-        scheme, kind, "tetris", value=0.5 if kind == "constant" else 1.0, factor=0.98, arms=[0.0, 0.1, 1.0]
-    )
+def test_the_weight_is_explained_whatever_sets_it(scheme, schedule, said):
+    fusion = Fusion.from_option(scheme, schedule)
+    text = weight_sentence(scheme, fusion.describe_weight, "tetris")
     assert said in text and "\n" not in text
-    if kind in ("trust", "search", "bandit"):
+    if schedule.kind in ("trust", "search", "bandit", "paired"):
         assert "not you" in text  # never presented as a measure of the person
+        assert "fixed" not in text  # CE's adaptive weight was once worded as fixed while it moved
+
+
+def test_the_weight_sentence_speaks_of_the_domains_episodes():
+    """Keepaway's page speaks of episodes and hold times, not games and lines."""
+    fusion = Fusion.from_option("linear", TrustWeight.from_initial(0.5))
+    text = weight_sentence("linear", fusion.describe_weight, "keepaway")
+    assert "after every episode" in text and "how long the keepers kept the ball" in text
+    assert "game" not in text and "lines" not in text

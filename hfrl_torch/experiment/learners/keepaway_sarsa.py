@@ -108,12 +108,12 @@ class SarsaKeepers(Learner):
         if self.taught:
             # a person's presses cannot be regenerated: fsync each; simulated events can
             self.log = FeedbackLog(run_dir / "feedback.jsonl", session=run_dir.name, fsync=self.person)
+            self.fusion = make_fusion(cfg, fields, seed=int(cfg.seed) * 2 + 3)
             if self.person:
-                self.teaching = make_live_teaching(cfg, self.log, view="keepaway")
+                self.teaching = make_live_teaching(cfg, self.log, view="keepaway", fusion=self.fusion)
             session = None if self.teaching is None else self.teaching.session
             self.trainer = make_keeper_trainer(cfg, config, fields, self.log, session)
             self.tamer, self.owners = make_keeper_tamer(cfg, self.agent_sarsa, fields, self.n)
-            self.fusion = make_fusion(cfg, fields, seed=int(cfg.seed) * 2 + 3)
             self.fuse = FusionModule(self.fusion)
             self.channel = FeedbackChannel(fields)
             self.feedback = torch.zeros(fields, dtype=torch.int64)  # events learned from, per learner

@@ -74,6 +74,7 @@ class CEMLearner(Learner):
 
     agent = "cem"
     unit = "it"
+    weight_evidence = frozenset({"compared", "searched"})
     x_key = "iteration"
 
     def __init__(self, cfg: DictConfig, run_dir: Path, checkpoint: dict[str, Any] | None = None) -> None:
@@ -89,7 +90,7 @@ class CEMLearner(Learner):
         self.searches_weight = False
         if self.taught:
             self._build_feedback(cfg, run_dir)
-            self.searches_weight = self.fusion.schedule.kind == "search"
+            self.searches_weight = self.fusion.searches_weight
             rollout = FusedRollout(
                 self.rules,
                 cfg.domain.features,
@@ -113,7 +114,7 @@ class CEMLearner(Learner):
 
     def _build_feedback(self, cfg: DictConfig, run_dir: Path) -> None:
         h = cfg.human
-        self.fusion = make_fusion(cfg, 1)
+        self.fusion = make_fusion(cfg, 1, evidence=self.weight_evidence)
         self.human_names = feature_names(feature_id(h.features), self.rules.width)
         self.human = make_tamer(cfg, 1, len(self.human_names))
         self.channel = FeedbackChannel(1)
@@ -121,7 +122,7 @@ class CEMLearner(Learner):
         self.seconds_per_placement = float(h.seconds_per_placement)
         self.log = FeedbackLog(run_dir / "feedback.jsonl", session=run_dir.name)
         if cfg.trainer.name == "interactive":
-            self.teaching = make_live_teaching(cfg, self.log, view="tetris")
+            self.teaching = make_live_teaching(cfg, self.log, view="tetris", fusion=self.fusion)
             self.page = TetrisPage(self.teaching.session, int(cfg.agent.iterations))
             self.trainer = self.teaching.trainer
             self.who = "a person in the browser (human:browser)"
@@ -193,11 +194,12 @@ class CEMLearner(Learner):
                 self.page.practising(t)
             self.rollout.human_weights = self.human.model.weight[0].detach().clone()
         metrics.update(self.cem.step())
+        searched = compared = None
         if self.searches_weight:
-            self.fusion.schedule.set(self.cem.mean[-1])
+            searched = self.cem.mean[-1:].clone()
             metrics["fusion/search_std"] = float(self.cem.variance[-1].sqrt())
-        if self.taught and self.fusion.schedule.kind == "paired":
-            eval_lines = self.compare_weights(metrics)
+        if self.taught and self.fusion.compared_weights() is not None:
+            eval_lines, compared = self.compare_weights(metrics)
         else:
             eval_lines = self.cem.evaluate_mean()
         ev = summarize(eval_lines, floor=0.0)
@@ -215,7 +217,14 @@ class CEMLearner(Learner):
             games = self.rollout.last
             self.fusion.count_matches(torch.zeros_like(games.matches), games.matches, games.compared)
             m = float(self.fusion.matches.rates()[0])
-            self.fusion.end_episode(performance=ev["mean"], taught=torch.tensor([watched["given"] > 0]))
+            self.fusion.end_episode(
+                performance=ev["mean"],
+                taught=torch.tensor([watched["given"] > 0]),
+                compared=compared,
+                searched=searched,
+            )
+            if compared is not None:
+                metrics["fusion/paired_next_weight"] = float(self.fusion.weight()[0])
             metrics.update(
                 {
                     "episode/env_return": watched["env_return"],
@@ -244,14 +253,14 @@ class CEMLearner(Learner):
         step = self.cem.iteration
         return [Point({"iteration": step, **metrics}, step)]
 
-    def compare_weights(self, metrics: dict[str, float]) -> torch.Tensor:
-        """``fusion.weight=adaptive``: the mean policy's test games at every paired arm, on the same games;
-        the next iteration plays at the best. Returns the lines at this iteration's weight (the curve), whose
-        games also give the match count."""
-        schedule = self.fusion.schedule
-        now = int(schedule.arm[0])
+    def compare_weights(self, metrics: dict[str, float]) -> tuple[torch.Tensor, torch.Tensor]:
+        """``fusion.weight=adaptive``: the mean policy's test games at every weight the fusion compares, on
+        the same games (the next iteration plays at the best). Returns the lines at this iteration's weight
+        (the curve; its games also give the match count) and the comparison [1, K, G] for ``end_episode``."""
+        arms = self.fusion.compared_weights()
+        now = int((arms - self.fusion.weight()[0]).abs().argmin())
         lines, games = [], None
-        for k, w in enumerate(schedule.arms.tolist()):
+        for k, w in enumerate(arms.tolist()):
             self.rollout.weight = w
             lines.append(self.cem.evaluate_mean())
             if k == now:
@@ -260,11 +269,9 @@ class CEMLearner(Learner):
         self.rollout.weight = None
         self.rollout.last, self.cem.last_eval_capped, self.cem.last_eval_pieces = games, capped, pieces
         table = torch.stack(lines).to(torch.float64)
-        nxt = int(schedule.compare(table.unsqueeze(0))[0])
-        for w, row in zip(schedule.arms.tolist(), table, strict=True):
+        for w, row in zip(arms.tolist(), table, strict=True):
             metrics[f"fusion/paired_lines_w{w:g}"] = float(row.mean())
-        metrics["fusion/paired_next_weight"] = float(schedule.arms[nxt])
-        return lines[now]
+        return lines[now], table.unsqueeze(0)
 
     def watch_game(self, game_seed: int, episode: int) -> dict[str, float]:
         """The trainer watches the fused mean policy play one game; H^ learns from every event; its totals.
