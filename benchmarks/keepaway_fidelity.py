@@ -97,7 +97,7 @@ def learn(args: argparse.Namespace) -> dict:
         cfg = compose("train", overrides=overrides)
     validate_train(cfg)
     with tempfile.TemporaryDirectory() as run_dir:
-        learner = learner_for("sarsa")(cfg, Path(run_dir), None)
+        learner = learner_for("sarsa", "keepaway")(cfg, Path(run_dir), None)
         agent = learner.agent_sarsa
         if args.initial_q:
             agent.coder.weight.fill_(args.initial_q / agent.coder.active_tiles)

@@ -102,7 +102,7 @@ def _train(cfg: DictConfig, run_dir: Path) -> None:
     tetris_games.SAVE_EVERY_S = SOAK_SAVE_EVERY_S
     run_dir.mkdir(parents=True, exist_ok=True)
     checkpoint = load_checkpoint(run_dir) if (run_dir / "checkpoints" / "last.pt").exists() else None
-    learner = learner_for(cfg.agent.name)(cfg, run_dir, checkpoint)
+    learner = learner_for(cfg.agent.name, cfg.domain.name)(cfg, run_dir, checkpoint)
     learn(learner, RunFiles(run_dir, cfg))
 
 

@@ -7,10 +7,12 @@ from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
 
 from hfrl_torch.common.errors import ConfigError, UserError
+from hfrl_torch.experiment.checks import check_kernels
 from hfrl_torch.experiment.cli import CONF_DIR, check_group_choices
-from hfrl_torch.experiment.config import check_kernels, validate_evaluate, validate_train
-from hfrl_torch.experiment.evaluate import evaluate_keepaway, evaluate_tetris, format_keepaway_summary
+from hfrl_torch.experiment.config import validate_evaluate, validate_train
 from hfrl_torch.experiment.factories import make_keepaway_config, make_trainer
+from hfrl_torch.experiment.keepaway_evaluation import evaluate_keepaway, format_keepaway_summary
+from hfrl_torch.experiment.tetris_evaluation import evaluate_tetris
 
 
 def _cfg(name: str, *overrides: str) -> DictConfig:

@@ -18,7 +18,7 @@ from hfrl_torch.common.errors import CheckpointError, ConfigError
 from hfrl_torch.envs.keepaway import play_benchmark_policy, play_keeper_policy
 from hfrl_torch.experiment.cli import CONF_DIR
 from hfrl_torch.experiment.config import validate_train
-from hfrl_torch.experiment.evaluate import evaluate_keepaway, format_keepaway_summary
+from hfrl_torch.experiment.keepaway_evaluation import evaluate_keepaway, format_keepaway_summary
 from hfrl_torch.experiment.learners.keepaway_sarsa import SarsaKeepers
 from hfrl_torch.experiment.run import RunFiles, learn
 from hfrl_torch.models.tile_coding import TileCoding
@@ -311,7 +311,7 @@ def test_the_cli_plays_a_run_directory(plain):
 def test_task_values_on_the_command_line_are_refused_for_a_checkpoint(plain, monkeypatch):
     """evaluate.py domain=keepaway policy=<run> domain.keepers=4: refused rather than silently ignored."""
     overrides = ["domain=keepaway", f"policy={plain}", "domain.batch=4", "domain.keepers=4"]
-    monkeypatch.setattr("hfrl_torch.experiment.evaluate._task_overrides", lambda: overrides)
+    monkeypatch.setattr("hfrl_torch.experiment.keepaway_evaluation.task_overrides", lambda: overrides)
     with pytest.raises(ConfigError) as info:
         _evaluate(plain, "episodes=4", "domain.batch=4", "domain.keepers=4")
     assert str(info.value) == (
@@ -323,7 +323,8 @@ def test_task_values_on_the_command_line_are_refused_for_a_checkpoint(plain, mon
 def test_a_checkpoint_plays_alike_with_either_kernels(plain, monkeypatch):
     """domain.kernels says how the simulator runs, not what task: allowed for a checkpoint, same bits."""
     monkeypatch.setattr(
-        "hfrl_torch.experiment.evaluate._task_overrides", lambda: ["domain.batch=4", "domain.kernels=torch"]
+        "hfrl_torch.experiment.keepaway_evaluation.task_overrides",
+        lambda: ["domain.batch=4", "domain.kernels=torch"],
     )
     runs = [
         _evaluate(plain, "episodes=4", "domain.batch=4", f"domain.kernels={k}") for k in ("torch", "numba")

@@ -17,7 +17,7 @@ from hfrl_torch.envs.tetris.engine_numba import play
 from hfrl_torch.envs.tetris.features import BT
 from hfrl_torch.experiment.cli import CONF_DIR
 from hfrl_torch.experiment.config import validate_train
-from hfrl_torch.experiment.evaluate import evaluate_tetris
+from hfrl_torch.experiment.tetris_evaluation import evaluate_tetris
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

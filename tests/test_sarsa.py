@@ -15,8 +15,8 @@ from hfrl_torch.agents.sarsa import sarsa_keepers as make_sarsa_keepers
 from hfrl_torch.common.checkpoint import load_checkpoint
 from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.envs.keepaway import KeepawayConfig, KeepawayEnv, play_benchmark_policy
+from hfrl_torch.experiment.checks import check_sarsa
 from hfrl_torch.experiment.cli import CONF_DIR
-from hfrl_torch.experiment.config import check_sarsa
 from hfrl_torch.models.tile_coding import TileCoding, keepaway_tile_widths
 
 torch.set_num_threads(1)

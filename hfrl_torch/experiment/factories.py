@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Collection
+from collections.abc import Callable
 
 import numba
 import torch
@@ -27,6 +27,7 @@ from hfrl_torch.envs.tetris.engine_numba import play as numba_play
 from hfrl_torch.envs.tetris.env import TetrisEnv
 from hfrl_torch.envs.tetris.features import feature_id, feature_size
 from hfrl_torch.envs.tetris.rules import TetrisRules
+from hfrl_torch.experiment.run import Learner
 from hfrl_torch.feedback.credit import CreditModel, GammaDelay, PreviousStep, UniformDelay
 from hfrl_torch.feedback.log import FeedbackLog
 from hfrl_torch.fusion.fusion import Fusion
@@ -309,34 +310,34 @@ def make_live_teaching(cfg: DictConfig, log: FeedbackLog, view: str, fusion: Fus
 # ------------------------------------------------------------------------------ fusion
 
 
-def fusion_scaling(cfg: DictConfig) -> str:
+def fusion_scaling(cfg: DictConfig, default: str = "decision") -> str:
     """How R and H^ are put on one scale (``fusion.normalise``): true rescales both per decision, false fuses
-    the raw values; null is the domain's way (Tetris CE: per decision; keepaway: H^ times Q's running spread;
-    PG: raw, H^ biases the logits); spread is keepaway's."""
+    the raw values, spread scales H^ by Q's running spread; null is the learner's own way (``default``,
+    ``Learner.default_scaling``: Tetris CE per decision, keepaway H^ times Q's spread, PG raw)."""
     value = OmegaConf.select(cfg, "fusion.normalise") if "normalise" in cfg.fusion else False
     if value is True:
         return "decision"
     if value is False:
         return "none"
-    if cfg.domain.name == "keepaway":
-        return "spread"
-    return "none" if cfg.agent.name == "pg" else "decision"
+    return default if value is None else str(value)
 
 
 def make_fusion(
     cfg: DictConfig,
+    learner: type[Learner],
     learners: int = 1,
     seed: int = 0,
     option: str | None = None,
-    evidence: Collection[str] = (),
 ) -> Fusion:
-    """The one fusion component of a run: ``fusion``'s rules, weights and scale, for ``learners`` that give
-    ``evidence`` for the weight (``Learner.weight_evidence``; ``option``: a learner's own rule instead, e.g.
+    """The one fusion component of a run of ``learner``: ``fusion``'s rules, the weight for what the learner
+    gives it (``Learner.weight_evidence``) and the scale (``Learner.default_scaling`` unless
+    ``fusion.normalise`` says), for ``learners`` learners (``option``: a learner's own rule instead, e.g.
     TAMER's ``human_only``)."""
     if option is not None and option != cfg.fusion.name:
         return Fusion.from_option(option, ConstantWeight([0.0] * learners), seed=seed)
-    schedule = make_weight(cfg, learners, evidence)
-    return Fusion.from_option(cfg.fusion.name, schedule, scaling=fusion_scaling(cfg), seed=seed)
+    schedule = make_weight(cfg, learners, learner.weight_evidence)
+    scaling = fusion_scaling(cfg, learner.default_scaling)
+    return Fusion.from_option(cfg.fusion.name, schedule, scaling=scaling, seed=seed)
 
 
 # ---------------------------------------------------------------------------- keepaway

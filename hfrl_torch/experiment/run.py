@@ -116,6 +116,14 @@ class Learner(ABC):
     unit: ClassVar[str] = "it"  # of the progress bar
     # what the learner gives the weight on H^ beyond episode ends (keys of fusion.weights.EVIDENCE)
     weight_evidence: ClassVar[frozenset[str]] = frozenset()
+    # how R and H^ are put on one scale when fusion.normalise is null (fusion.fusion.SCALINGS)
+    default_scaling: ClassVar[str] = "decision"
+
+    @classmethod
+    @abstractmethod
+    def check(cls, cfg: DictConfig) -> None:
+        """Check the learner's own config values (``agent``, ``human``, ``trainer``); the domain's group and
+        the fusion weight are checked by ``config.validate_train``. Raises ``ConfigError`` with one line."""
 
     def __init__(self, cfg: DictConfig, run_dir: Path, checkpoint: dict[str, Any] | None = None) -> None:
         self.cfg, self.run_dir = cfg, run_dir

@@ -17,6 +17,8 @@ from hfrl_torch.experiment.factories import set_threads
 from hfrl_torch.experiment.registry import learner_for
 from hfrl_torch.experiment.run import Interrupt, RunFiles, learn
 
+EVALUATE_DEFAULT_DOMAIN = "tetris"  # conf/evaluate.yaml's default domain
+
 
 class TrainResult(NamedTuple):
     """Where a run lives and its final score (a sweeper's objective; None if there is none)."""
@@ -79,7 +81,7 @@ def train(cfg: DictConfig) -> TrainResult:
     if cfg.logger.backend == "tensorboard":
         lines.append(f"TensorBoard:      {tensorboard} --logdir {run_dir / 'tensorboard'}")
     if files.checkpoint.exists():
-        keepaway = "domain=keepaway " if domain == "keepaway" else ""
-        lines.append(f"Evaluate:         {python} evaluate.py {keepaway}policy={run_dir}")
+        choice = "" if domain == EVALUATE_DEFAULT_DOMAIN else f"domain={domain} "
+        lines.append(f"Evaluate:         {python} evaluate.py {choice}policy={run_dir}")
     print("\n".join(lines), file=sys.stderr)
     return TrainResult(run_dir, learner.score(final) if final else None)

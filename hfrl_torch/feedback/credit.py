@@ -21,6 +21,7 @@ import torch
 from torch import Tensor
 
 __all__ = [
+    "CREDITS",
     "CreditModel",
     "DelayDensity",
     "GammaDelay",
@@ -28,6 +29,8 @@ __all__ = [
     "UniformDelay",
     "credit_weights",
 ]
+
+CREDITS = ("previous_step", "gamma", "uniform")  # human.credit: PreviousStep, GammaDelay, UniformDelay
 
 
 class DelayDensity(ABC):

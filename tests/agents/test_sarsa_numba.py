@@ -21,7 +21,7 @@ from hfrl_torch.agents.tamer.keeper_tamer import KeeperTamer
 from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.common.threads import thread_count
 from hfrl_torch.envs.keepaway import KeepawayConfig
-from hfrl_torch.experiment.config import check_learner_kernels
+from hfrl_torch.experiment.checks import check_learner_kernels
 from hfrl_torch.experiment.factories import make_keepers
 from hfrl_torch.models.tile_coding import TileCoding, keepaway_tile_widths
 from hfrl_torch.models.tile_coding_numba import compiled_add_, compiled_tiles, compiled_values

@@ -17,8 +17,8 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from hfrl_torch.common.errors import ConfigError
+from hfrl_torch.experiment.checks import check_interactive
 from hfrl_torch.experiment.cli import CONF_DIR
-from hfrl_torch.experiment.config import check_interactive
 from hfrl_torch.feedback.log import FeedbackLog, load_feedback_log
 from hfrl_torch.interactive.live import LiveTeaching
 from hfrl_torch.interactive.messages import Finish

@@ -14,6 +14,7 @@ DELLACHERIE = 2
 DT = 3
 
 _IDS = {"bt": BT, "knox": KNOX, "dellacherie": DELLACHERIE, "dt": DT}
+FEATURE_SETS: tuple[str, ...] = tuple(_IDS)  # the feature sets by name
 
 
 @dataclass(frozen=True)

@@ -74,7 +74,7 @@ class DeepQLearner(Learner):
         self.log: FeedbackLog | None = None
         if self.taught:
             self.log = FeedbackLog(run_dir / "feedback.jsonl", session=run_dir.name, fsync=False)
-        self.fusion: Fusion = make_fusion(cfg, 1, seed=2 * self.seed + 5)
+        self.fusion: Fusion = make_fusion(cfg, type(self), 1, seed=2 * self.seed + 5)
         self.dqn = self.make_dqn()
         self.human: HumanValues | None = self.make_human() if self.taught else None
         self.feedback_transform = self.make_feedback() if self.taught else None

@@ -16,6 +16,7 @@ from functools import cached_property
 from typing import Any, ClassVar
 
 import torch
+from omegaconf import DictConfig
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.envs.transforms import Transform
@@ -25,6 +26,7 @@ from hfrl_torch.agents.dqn import DeepQ, HumanValues, TeamSteps
 from hfrl_torch.agents.dqn.team_steps import CYCLES_PER_SECOND
 from hfrl_torch.common.stats import summarize
 from hfrl_torch.envs.keepaway import KeepawayConfig, KeepawayEnv
+from hfrl_torch.experiment.checks import check_keepaway_dqn
 from hfrl_torch.experiment.factories import (
     make_deep_tamer,
     make_dqn,
@@ -63,6 +65,12 @@ class KeepawayDQN(DeepQLearner):
     """DQN keepers on ``agent.boards`` fields of one learner (see the module docstring)."""
 
     domain = "keepaway"
+    default_scaling = "spread"  # H^ times Q's running spread, as the Sarsa keepers
+
+    @classmethod
+    def check(cls, cfg: DictConfig) -> None:
+        check_keepaway_dqn(cfg)
+
     human_in_keys: ClassVar[list[Any]] = [keys.OBSERVATION]
     score_key = "eval/greedy_episode_seconds"
     score_unit = "s per episode"

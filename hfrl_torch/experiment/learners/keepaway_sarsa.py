@@ -62,6 +62,7 @@ from hfrl_torch.envs.keepaway.records import (
     CYCLES_PER_SECOND,
     KeepawayRecords,
 )
+from hfrl_torch.experiment.checks import check_keepaway_feedback, check_sarsa
 from hfrl_torch.experiment.factories import (
     make_departure,
     make_device,
@@ -90,6 +91,12 @@ class SarsaKeepers(Learner):
 
     domain = "keepaway"
     agent = "sarsa"
+    default_scaling = "spread"  # H^ times Q's running spread (docs/feedback.md)
+
+    @classmethod
+    def check(cls, cfg: DictConfig) -> None:
+        check_sarsa(cfg)
+        check_keepaway_feedback(cfg)
 
     def __init__(self, cfg: DictConfig, run_dir: Path, checkpoint: dict[str, Any] | None = None) -> None:
         super().__init__(cfg, run_dir, checkpoint)
@@ -108,7 +115,7 @@ class SarsaKeepers(Learner):
         if self.taught:
             # a person's presses cannot be regenerated: fsync each; simulated events can
             self.log = FeedbackLog(run_dir / "feedback.jsonl", session=run_dir.name, fsync=self.person)
-            self.fusion = make_fusion(cfg, fields, seed=int(cfg.seed) * 2 + 3)
+            self.fusion = make_fusion(cfg, type(self), fields, seed=int(cfg.seed) * 2 + 3)
             if self.person:
                 self.teaching = make_live_teaching(cfg, self.log, view="keepaway", fusion=self.fusion)
             session = None if self.teaching is None else self.teaching.session

@@ -49,6 +49,7 @@ from hfrl_torch.common.logger import Logger
 from hfrl_torch.common.stats import summarize
 from hfrl_torch.envs.tetris.env import TetrisEnv
 from hfrl_torch.envs.tetris.features import feature_id, feature_names
+from hfrl_torch.experiment.checks import check_cem
 from hfrl_torch.experiment.factories import (
     make_cem_config,
     make_departure,
@@ -75,6 +76,11 @@ class CEMLearner(Learner):
     agent = "cem"
     unit = "it"
     weight_evidence = frozenset({"compared", "searched"})
+
+    @classmethod
+    def check(cls, cfg: DictConfig) -> None:
+        check_cem(cfg)
+
     x_key = "iteration"
 
     def __init__(self, cfg: DictConfig, run_dir: Path, checkpoint: dict[str, Any] | None = None) -> None:
@@ -114,7 +120,7 @@ class CEMLearner(Learner):
 
     def _build_feedback(self, cfg: DictConfig, run_dir: Path) -> None:
         h = cfg.human
-        self.fusion = make_fusion(cfg, 1, evidence=self.weight_evidence)
+        self.fusion = make_fusion(cfg, type(self), 1)
         self.human_names = feature_names(feature_id(h.features), self.rules.width)
         self.human = make_tamer(cfg, 1, len(self.human_names))
         self.channel = FeedbackChannel(1)

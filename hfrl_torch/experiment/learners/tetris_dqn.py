@@ -12,6 +12,7 @@ from __future__ import annotations
 from typing import Any, ClassVar
 
 import torch
+from omegaconf import DictConfig
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.envs.transforms import Transform
@@ -21,6 +22,7 @@ from hfrl_torch.agents.dqn import CHOOSABLE, DeepQ, HumanValues, SharedLinearTam
 from hfrl_torch.agents.tamer.tamer import placement_deltas
 from hfrl_torch.common.stats import summarize
 from hfrl_torch.envs.tetris.features import feature_id, feature_names, feature_size
+from hfrl_torch.experiment.checks import check_tetris_dqn
 from hfrl_torch.experiment.factories import (
     make_deep_tamer,
     make_dqn,
@@ -54,6 +56,11 @@ class TetrisDQN(DeepQLearner):
     """DQN over Tetris afterstates on ``agent.boards`` boards (see the module docstring)."""
 
     domain = "tetris"
+
+    @classmethod
+    def check(cls, cfg: DictConfig) -> None:
+        check_tetris_dqn(cfg)
+
     masked = True
     mask_key = CHOOSABLE
     human_in_keys: ClassVar[list[Any]] = [keys.AFTERSTATE_FEATURES, keys.STATE_FEATURES]

@@ -97,7 +97,7 @@ class TetrisGames(Learner):
             self.departure = make_departure(cfg)
         else:
             self.trainer, self.human = None, None
-        self.fusion = make_fusion(cfg, L, seed=2 * int(cfg.seed) + 5, option=self.fusion_option)
+        self.fusion = make_fusion(cfg, type(self), L, seed=2 * int(cfg.seed) + 5, option=self.fusion_option)
         self.fuse = FusionModule(self.fusion, select=self.select)
         if checkpoint is None:
             self.td = self.env.reset()

@@ -23,6 +23,7 @@ from tensordict import TensorDictBase
 from hfrl_torch import keys
 from hfrl_torch.agents.pg import PolicyGradient
 from hfrl_torch.envs.tetris.features import feature_id, feature_size
+from hfrl_torch.experiment.checks import check_pg
 from hfrl_torch.experiment.learners.tetris_games import TetrisGames
 
 
@@ -30,6 +31,12 @@ class PolicyGradientLearner(TetrisGames):
     """L policy-gradient learners, one board each (and one trainer each with a trainer)."""
 
     agent = "pg"
+    default_scaling = "none"  # H^ biases the logits as they are
+
+    @classmethod
+    def check(cls, cfg: DictConfig) -> None:
+        check_pg(cfg)
+
     taught = True
 
     def __init__(self, cfg: DictConfig, run_dir: Path, checkpoint: dict[str, Any] | None = None) -> None:

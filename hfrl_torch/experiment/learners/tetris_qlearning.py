@@ -17,6 +17,7 @@ from tensordict import TensorDictBase
 from hfrl_torch import keys
 from hfrl_torch.agents.qlearning import LinearQLearning
 from hfrl_torch.envs.tetris.features import feature_id, feature_size
+from hfrl_torch.experiment.checks import check_qlearning
 from hfrl_torch.experiment.learners.tetris_games import TetrisGames
 
 
@@ -31,6 +32,11 @@ class QLearningLearner(TetrisGames):
     """L linear Q-learners over afterstate features, one board each."""
 
     agent = "qlearning"
+
+    @classmethod
+    def check(cls, cfg: DictConfig) -> None:
+        check_qlearning(cfg)
+
     label = "Q-learning"
 
     def __init__(self, cfg: DictConfig, run_dir: Path, checkpoint: dict[str, Any] | None = None) -> None:

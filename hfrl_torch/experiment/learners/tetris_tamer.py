@@ -12,9 +12,11 @@ from __future__ import annotations
 from typing import Any
 
 import torch
+from omegaconf import DictConfig
 from tensordict import TensorDictBase
 
 from hfrl_torch import keys
+from hfrl_torch.experiment.checks import check_tamer
 from hfrl_torch.experiment.learners.tetris_games import TetrisGames
 
 
@@ -22,6 +24,11 @@ class TamerLearner(TetrisGames):
     """L TAMER learners over Knox's (or the BT) feature changes, one board and one trainer each."""
 
     agent = "tamer"
+
+    @classmethod
+    def check(cls, cfg: DictConfig) -> None:
+        check_tamer(cfg)
+
     label = "TAMER"
     taught = True
     select = "greedy"
