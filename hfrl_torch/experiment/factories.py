@@ -38,13 +38,11 @@ from hfrl_torch.interactive.keepaway_live import BrowserKeeperTrainer
 from hfrl_torch.interactive.live import DEFAULT_SPEED, KEY_NAMES, LiveTeaching
 from hfrl_torch.interactive.server import TeachingServer
 from hfrl_torch.interactive.session import TeachingSession
-from hfrl_torch.interactive.tetris_live import BrowserTetrisTrainer
 from hfrl_torch.models.tile_coding import TileCoding, keepaway_tile_widths
 from hfrl_torch.trainers import HumanLikeTiming, OracleTrainer, ReplayTrainer, Trainer, ValueProxyTrainer
 from hfrl_torch.trainers.departure import Departure
 from hfrl_torch.trainers.keepaway_oracle import KeepawayOracle
 from hfrl_torch.trainers.keepaway_replay import KeepawayReplay
-from hfrl_torch.trainers.queue_trainer import QueueTrainer
 
 # ------------------------------------------------------------------------------- run
 
@@ -280,10 +278,12 @@ def make_keeper_trainer(
     )
 
 
-def make_live_teaching(cfg: DictConfig, log: FeedbackLog, view: str, fusion: Fusion) -> LiveTeaching:
-    """The browser trainer's page server for ``view`` (tetris or keepaway), started; Tetris presses are
-    drained by a ``BrowserTetrisTrainer`` (keepaway's trainer is ``make_keeper_trainer``'s). The page says
-    what sets ``fusion``'s weight in the fusion's own words."""
+def make_live_teaching(
+    cfg: DictConfig, view: str, fusion: Fusion, drain: Callable[[TeachingSession], Trainer]
+) -> LiveTeaching:
+    """The browser trainer's page server for ``view`` (tetris or keepaway), started, with ``drain``'s trainer
+    taking the presses off the session (Tetris: a ``BrowserTetrisTrainer``; keepaway: a ``QueueTrainer``
+    that ``make_keeper_trainer`` wraps). The page says what sets ``fusion``'s weight in its own words."""
     t = cfg.trainer
     speed = DEFAULT_SPEED[view] if t.actions_per_s is None else float(t.actions_per_s)
     session = TeachingSession(actions_per_s=speed, reconnect_s=float(t.reconnect_wait_s))
@@ -303,8 +303,7 @@ def make_live_teaching(cfg: DictConfig, log: FeedbackLog, view: str, fusion: Fus
         max_teachers=int(t.max_teachers),
         max_connections=int(t.max_connections),
     )
-    trainer = BrowserTetrisTrainer(session, log) if view == "tetris" else QueueTrainer(session.queue, log=log)
-    return LiveTeaching.start(server, session, trainer)
+    return LiveTeaching.start(server, session, drain(session))
 
 
 # ------------------------------------------------------------------------------ fusion

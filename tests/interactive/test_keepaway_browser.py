@@ -189,7 +189,7 @@ def test_a_taught_loop_learns_from_presses_at_real_time(tmp_path, monkeypatch, r
     session.sleep = sleep
     session.connect()
     page = LiveTeaching(TeachingServer(session, port=0), session, QueueTrainer(session.queue))  # not served
-    monkeypatch.setattr(keepaway_sarsa, "make_live_teaching", lambda cfg, log, view, fusion: page)
+    monkeypatch.setattr(keepaway_sarsa, "make_live_teaching", lambda cfg, view, fusion, drain: page)
     over = ["domain=keepaway", "trainer=interactive", "trainer.wait_for_page_s=0", "agent.table_bits=12"]
     learner, _ = run_learner(tmp_path, *over, f"agent.hours={150 / 36000}", "fusion.weight=0.5")
     assert 14.85 <= clock[0] <= 17.0  # 150+ cycles at real time: the last step may run a few more
@@ -242,7 +242,7 @@ def test_finish_from_the_page_ends_the_keepers_run_with_a_checkpoint(tmp_path, m
     session.connect()
     page = LiveTeaching(TeachingServer(session, port=0), session, QueueTrainer(session.queue))
     monkeypatch.setattr(page, "stop", lambda reason, saved: ended.append((reason, saved)) or 0)
-    monkeypatch.setattr(keepaway_sarsa, "make_live_teaching", lambda cfg, log, view, fusion: page)
+    monkeypatch.setattr(keepaway_sarsa, "make_live_teaching", lambda cfg, view, fusion, drain: page)
     over = ["domain=keepaway", "trainer=interactive", "trainer.wait_for_page_s=0", "agent.table_bits=12"]
     learner, final = run_learner(tmp_path, *over, "agent.hours=0.05", "agent.log_minutes=0.05")
     assert 4.0 <= clock[0] < 4.5  # the chunk ended at the request, not at the 3 simulated minutes

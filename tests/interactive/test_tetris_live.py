@@ -131,10 +131,8 @@ def test_a_taught_ce_round_files_each_press_under_the_placement_shown_before_it(
     session.connect()
     made = {}
 
-    def live(cfg, log, view, fusion):
-        made["teaching"] = LiveTeaching(
-            TeachingServer(session, port=0), session, BrowserTetrisTrainer(session, log)
-        )
+    def live(cfg, view, fusion, drain):
+        made["teaching"] = LiveTeaching(TeachingServer(session, port=0), session, drain(session))
         return made["teaching"]
 
     monkeypatch.setattr(tetris_cem, "make_live_teaching", live)

@@ -80,6 +80,7 @@ from hfrl_torch.feedback.log import FeedbackLog
 from hfrl_torch.fusion.transform import FeedbackFusion, FusionModule
 from hfrl_torch.interactive.keepaway_live import KeepawayWatcher, wait_for_teacher
 from hfrl_torch.interactive.live import LiveTeaching
+from hfrl_torch.trainers.queue_trainer import QueueTrainer
 
 STEPS_PER_CHUNK = 200  # env steps per chunk (each usually one simulator cycle)
 # one row per finished episode of a taught learner: its human effort and the weight it was played at
@@ -117,7 +118,10 @@ class SarsaKeepers(Learner):
             self.log = FeedbackLog(run_dir / "feedback.jsonl", session=run_dir.name, fsync=self.person)
             self.fusion = make_fusion(cfg, type(self), fields, seed=int(cfg.seed) * 2 + 3)
             if self.person:
-                self.teaching = make_live_teaching(cfg, self.log, view="keepaway", fusion=self.fusion)
+                log = self.log
+                self.teaching = make_live_teaching(
+                    cfg, "keepaway", self.fusion, lambda session: QueueTrainer(session.queue, log=log)
+                )
             session = None if self.teaching is None else self.teaching.session
             self.trainer = make_keeper_trainer(cfg, config, fields, self.log, session)
             self.tamer, self.owners = make_keeper_tamer(cfg, self.agent_sarsa, fields, self.n)

@@ -67,7 +67,7 @@ from hfrl_torch.feedback.channel import FeedbackChannel
 from hfrl_torch.feedback.log import FeedbackLog
 from hfrl_torch.fusion.transform import FeedbackFusion, FusionModule
 from hfrl_torch.interactive.live import LiveTeaching
-from hfrl_torch.interactive.tetris_live import LATE_FEEDBACK_S, TetrisPage
+from hfrl_torch.interactive.tetris_live import LATE_FEEDBACK_S, BrowserTetrisTrainer, TetrisPage
 
 
 class CEMLearner(Learner):
@@ -128,7 +128,10 @@ class CEMLearner(Learner):
         self.seconds_per_placement = float(h.seconds_per_placement)
         self.log = FeedbackLog(run_dir / "feedback.jsonl", session=run_dir.name)
         if cfg.trainer.name == "interactive":
-            self.teaching = make_live_teaching(cfg, self.log, view="tetris", fusion=self.fusion)
+            log = self.log
+            self.teaching = make_live_teaching(
+                cfg, "tetris", self.fusion, lambda session: BrowserTetrisTrainer(session, log)
+            )
             self.page = TetrisPage(self.teaching.session, int(cfg.agent.iterations))
             self.trainer = self.teaching.trainer
             self.who = "a person in the browser (human:browser)"
