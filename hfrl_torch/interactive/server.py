@@ -69,6 +69,17 @@ def is_wildcard(host: str) -> bool:
     return host in ("", "0.0.0.0", "::")
 
 
+# on every response: no other site may frame the page (a framed page is served from here, so its WebSocket
+# passes the Origin check, and a decoy over it could click Good, Bad or Finish and save: clickjacking); no
+# content sniffing; and the token in the page's URL never leaves in a Referer header
+SECURITY_HEADERS = {
+    "X-Frame-Options": "DENY",
+    "Content-Security-Policy": "frame-ancestors 'none'",
+    "X-Content-Type-Options": "nosniff",
+    "Referrer-Policy": "no-referrer",
+}
+
+
 def _is_ip(name: str) -> bool:
     try:
         ipaddress.ip_address(name)
@@ -479,8 +490,13 @@ class TeachingServer:
 
     # --- running ---
 
+    @staticmethod
+    async def _secure_headers(request: web.Request, response: web.StreamResponse) -> None:
+        response.headers.update(SECURITY_HEADERS)
+
     def _app(self) -> web.Application:
         app = web.Application(middlewares=[self._guard])
+        app.on_response_prepare.append(self._secure_headers)
         app.router.add_get("/", self._index)
         app.router.add_get("/ws", self._ws)
         app.router.add_static("/static/", STATIC)

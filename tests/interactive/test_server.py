@@ -501,3 +501,37 @@ def test_the_end_names_why_the_run_ended_and_how_to_continue_it(tmp_path, monkey
     assert ended[0][1]["feedback_log"] == str(tmp_path / "feedback.jsonl")
     with pytest.raises(ValueError, match="reason='done' is invalid; allowed: finished, finished_by_you"):
         LiveTeaching(TeachingServer(session, port=0), session, QueueTrainer(session.queue)).stop("done")
+
+
+def _headers(port: int, path: str, host: str) -> tuple[int, dict[str, str]]:
+    """The status and headers of a raw HTTP/1.1 GET."""
+    with socket.create_connection(("127.0.0.1", port), timeout=10) as s:
+        s.sendall(f"GET {path} HTTP/1.1\r\nHost: {host}\r\nConnection: close\r\n\r\n".encode("latin-1"))
+        data = b""
+        while b"\r\n\r\n" not in data:
+            chunk = s.recv(4096)
+            if not chunk:
+                break
+            data += chunk
+    head = data.split(b"\r\n\r\n", 1)[0].decode("latin-1").split("\r\n")
+    fields = dict(line.split(": ", 1) for line in head[1:] if ": " in line)
+    return int(head[0].split(" ", 2)[1]), {k.lower(): v for k, v in fields.items()}
+
+
+def test_no_other_site_may_frame_the_page(served):
+    """Clickjacking: a page elsewhere framed the trainer (its WebSocket passed the Origin check: the frame is
+    served from here) and a decoy over it clicked Finish and save. Every response forbids framing, the
+    refusals included, and keeps the token in the URL out of Referer headers."""
+    _, server = served
+    host = f"127.0.0.1:{server.port}"
+    for path, host_header, status in [
+        ("/", host, 200),
+        ("/static/app.js", host, 200),
+        ("/no/such/page", host, 404),
+        ("/", "evil.example", 400),
+    ]:
+        got, headers = _headers(server.port, path, host_header)
+        assert got == status
+        assert headers["x-frame-options"] == "DENY"
+        assert headers["content-security-policy"] == "frame-ancestors 'none'"
+        assert headers["referrer-policy"] == "no-referrer" and headers["x-content-type-options"] == "nosniff"
