@@ -184,7 +184,7 @@ class TeachingSession:
         if not self.here:
             return "you said you are away; press I'm here to teach again"
         if not self.live:
-            return "the agent is practising on its own; your next game starts soon"
+            return "the agent is practising on its own; presses count again when it plays on screen"
         return None
 
     def _take(self, message: Feedback, now: float, on_screen: int | None) -> dict[str, Any]:
