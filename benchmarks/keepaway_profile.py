@@ -33,9 +33,11 @@ os.environ["NUMBA_CACHE_DIR"] = _CACHE  # before numba is imported: compile afre
 import numba  # noqa: E402
 import torch  # noqa: E402
 
-from hfrl_torch.envs.keepaway import TASKS, KeepawayConfig, KeepawaySimulator, cycle_numba  # noqa: E402
+from hfrl_torch.envs.keepaway import TASKS, KeepawayConfig, KeepawaySimulator  # noqa: E402
+from hfrl_torch.envs.keepaway.compiled import kernels  # noqa: E402
 
-_NUMBA_NAME = re.compile(r"cycle_numba\d+(\w+?)B\d+v\d+")
+# numba's mangled names: ...8compiled<len><module><len><function>B<n>v<n>...
+_NUMBA_NAME = re.compile(r"compiled\d+([a-z_]+)\d+(\w+?)B\d+v\d+")
 
 
 def kernel_symbols(module: object) -> list[tuple[int, int, str]]:
@@ -63,7 +65,8 @@ def kernel_symbols(module: object) -> list[tuple[int, int, str]]:
                 address = library.get_pointer_to_function(parts[3])
                 if address:
                     match = _NUMBA_NAME.search(parts[3])
-                    rows.add((address, int(parts[1], 16), match.group(1) if match else parts[3][:60]))
+                    name = f"{match.group(1)}.{match.group(2)}" if match else parts[3][:60]
+                    rows.add((address, int(parts[1], 16), name))
     return sorted(rows)
 
 
@@ -117,7 +120,7 @@ def main() -> None:
     sim.play_policy(args.policy, episodes_per_field=2, max_cycles=3)
 
     perf_map = Path(f"/tmp/perf-{os.getpid()}.map")
-    symbols = kernel_symbols(cycle_numba)
+    symbols = kernel_symbols(kernels)  # the entry points' code holds every function they call
     perf_map.write_text("".join(f"{a:x} {s:x} {n}\n" for a, s, n in symbols))
     data = Path(_CACHE) / "perf.data"
     try:
