@@ -17,8 +17,10 @@ software clock, which is what the numbers in docs/keepaway.md come from.
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import os
+import pkgutil
 import re
 import shutil
 import subprocess
@@ -33,14 +35,16 @@ os.environ["NUMBA_CACHE_DIR"] = _CACHE  # before numba is imported: compile afre
 import numba  # noqa: E402
 import torch  # noqa: E402
 
-from hfrl_torch.envs.keepaway import TASKS, KeepawayConfig, KeepawaySimulator, cycle_numba  # noqa: E402
+import hfrl_torch.envs.keepaway.compiled as compiled_cycle  # noqa: E402
+from hfrl_torch.envs.keepaway import TASKS, KeepawayConfig, KeepawaySimulator  # noqa: E402
 
-_NUMBA_NAME = re.compile(r"cycle_numba\d+(\w+?)B\d+v\d+")
+# numba's mangled names: ...8compiled<len><module><len><function>B<n>v<n>...
+_NUMBA_NAME = re.compile(r"compiled\d+([a-z_]+)\d+(\w+?)B\d+v\d+")
 
 
 def kernel_symbols(module: object) -> list[tuple[int, int, str]]:
     """(address, size, name) of every function in the compiled object code of ``module``'s numba
-    dispatchers, named by the Python function it was compiled from."""
+    dispatchers, named by the compiled module and the Python function it was compiled from."""
     rows = set()
     for attr in dir(module):
         dispatcher = getattr(module, attr)
@@ -63,7 +67,8 @@ def kernel_symbols(module: object) -> list[tuple[int, int, str]]:
                 address = library.get_pointer_to_function(parts[3])
                 if address:
                     match = _NUMBA_NAME.search(parts[3])
-                    rows.add((address, int(parts[1], 16), match.group(1) if match else parts[3][:60]))
+                    name = f"{match.group(1)}.{match.group(2)}" if match else parts[3][:60]
+                    rows.add((address, int(parts[1], 16), name))
     return sorted(rows)
 
 
@@ -117,7 +122,13 @@ def main() -> None:
     sim.play_policy(args.policy, episodes_per_field=2, max_cycles=3)
 
     perf_map = Path(f"/tmp/perf-{os.getpid()}.map")
-    symbols = kernel_symbols(cycle_numba)
+    # every module of the package: a function's code runs from its own dispatcher's object, which only
+    # the module that defines it (or imports it) lists
+    modules = [
+        importlib.import_module(f"{compiled_cycle.__name__}.{m.name}")
+        for m in pkgutil.iter_modules(compiled_cycle.__path__)
+    ]
+    symbols = sorted({row for module in modules for row in kernel_symbols(module)})
     perf_map.write_text("".join(f"{a:x} {s:x} {n}\n" for a, s, n in symbols))
     data = Path(_CACHE) / "perf.data"
     try:

@@ -15,7 +15,7 @@ from hfrl_torch.envs.keepaway import (
     KeepawaySimulator,
     play_benchmark_policy,
 )
-from hfrl_torch.envs.keepaway.compiled_cycle import MIN_FIELDS_PER_THREAD, _parts
+from hfrl_torch.envs.keepaway.compiled.glue import MIN_FIELDS_PER_THREAD, _parts
 from hfrl_torch.envs.keepaway.perception import observe
 
 SERVER = TASKS["server"]

@@ -230,22 +230,24 @@ def test_the_interception_shortcuts_keep_the_fastest_keeper_and_its_point() -> N
     """``_keeper_intercepts`` searches a keeper only below the fastest before it (and only the
     holder's when the ball is kickable): the fastest keeper, its cycles and its point are those of
     the full search, on random views (the commands read nothing else)."""
-    from hfrl_torch.envs.keepaway import cycle_numba as K
-    from hfrl_torch.envs.keepaway.compiled_cycle import task_arrays
+    from hfrl_torch.envs.keepaway.compiled.common import NO_CAP, N
+    from hfrl_torch.envs.keepaway.compiled.glue import task_arrays
+    from hfrl_torch.envs.keepaway.compiled.keepers import _fastest, _keeper_intercepts
+    from hfrl_torch.envs.keepaway.compiled.skills import _intercept
 
     prm, ip, tabs, _ = task_arrays(KeepawayConfig(kernels="cycle"))
     g = torch.Generator().manual_seed(5)
-    n = int(ip[K.N])
+    n = int(ip[N])
     for trial in range(400):
         vpos = (torch.rand(6, 2, generator=g) * 20 - 10).numpy().astype("float32")
         vvel = ((torch.rand(6, 2, generator=g) * 2 - 1) * (0.2 + trial % 5 / 4)).numpy().astype("float32")
         vbody = ((torch.rand(6, generator=g) * 2 - 1) * math.pi).numpy().astype("float32")
         holder, kickable = trial % n, bool(trial % 3 == 0)
-        full = [K._intercept.py_func(1 + k, vpos, vvel, vbody, prm, ip, tabs, K.NO_CAP) for k in range(n)]
+        full = [_intercept.py_func(1 + k, vpos, vvel, vbody, prm, ip, tabs, NO_CAP) for k in range(n)]
         icyc, ipts = np.empty(n, dtype=np.int64), np.empty((n, 2))
-        K._keeper_intercepts.py_func(vpos, vvel, vbody, holder, kickable, prm, ip, tabs, icyc, ipts)
-        want = K._fastest.py_func(np.array([c for c, _, _ in full], dtype=np.int64), holder, kickable)
-        got = K._fastest.py_func(icyc, holder, kickable)
+        _keeper_intercepts.py_func(vpos, vvel, vbody, holder, kickable, prm, ip, tabs, icyc, ipts)
+        want = _fastest.py_func(np.array([c for c, _, _ in full], dtype=np.int64), holder, kickable)
+        got = _fastest.py_func(icyc, holder, kickable)
         assert got == want
         assert icyc[got] == full[got][0]
         if not kickable:
@@ -255,12 +257,13 @@ def test_the_interception_shortcuts_keep_the_fastest_keeper_and_its_point() -> N
 def test_the_quantisation_tables_give_the_direct_computation_bits() -> None:
     """The sensor's distance and direction tables (compiled lookups in ``_observe``) hold exactly
     what the direct formulas compute in compiled code."""
-    from hfrl_torch.envs.keepaway import cycle_numba as K
+    from hfrl_torch.envs.keepaway.compiled import perception as K
+    from hfrl_torch.envs.keepaway.compiled.common import DEG
 
     @numba.njit
     def direct(d: float, k: int) -> tuple[float, float, float]:
         qdist = np.rint(np.exp(np.rint(np.log(d + 1e-10) / 0.1) * 0.1) / 0.1) * 0.1
-        return qdist, np.cos(np.float64(k) * K.DEG), np.sin(np.float64(k) * K.DEG)
+        return qdist, np.cos(np.float64(k) * DEG), np.sin(np.float64(k) * DEG)
 
     for i, d in enumerate(np.concatenate([[0.0, 1e-9, 0.05, 1e6], np.geomspace(0.01, 150.0, 2000)])):
         k = i % 361 - 180

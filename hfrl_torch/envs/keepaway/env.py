@@ -167,7 +167,7 @@ class KeepawayEnv(EnvBase):
 
     def _decisions(self) -> tuple[Decision, torch.Tensor]:
         """The simulator's decision and the holder's state variables (the torch path's; the
-        whole-cycle path writes them in ``cycle_numba.env_outputs``)."""
+        whole-cycle path writes them in ``compiled.kernels.env_outputs``)."""
         dec = self.sim.decision()
         return dec, self.sim.observe(dec.holder)[0]
 

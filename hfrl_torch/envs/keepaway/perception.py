@@ -40,6 +40,15 @@ OPPONENT_FAST_DRIFT = 0.5  # ... or this far when the ball moves faster than 1 m
 SENSE_SPEED_QSTEP = 0.01  # sense_body's speed is quantised to this (BodySenderPlayerV6::sendVelocity)
 STILL = 1e-4  # Trilearn's EPSILON: a sensed speed below it tells nothing of a collision's direction
 COLLISION_BALL_GAP = 0.2  # where the world model puts a ball it believes the observer ran into
+COLLISION_BALL_BOUNCE = -0.1  # ... and the factor on its velocity
+COLLISION_RANGE = 0.5  # a collision is considered with the ball within kickable distance + this
+COLLISION_STILL_RANGE = 0.8  # ... or within this of a still player whose prediction moved
+PREDICTED_MOVING = 0.01  # a predicted speed above this counts as moving
+TURNED_SPEED = 0.08  # a predicted velocity axis below this counts as turned (reversed)
+COLLISION_SLOWDOWN = 0.25  # ... and a sensed speed under this share of the predicted one as stopped
+NO_PLAYER_DISTANCE = 1000.0  # getClosestInSetTo's distance when the set is empty
+BALL_AGREEMENT = 2.0  # seen and prior ball velocities agree within this many ball_rand |v| per axis
+OPPONENT_FAST_SPEED = 1.0  # the ball's x speed above which the opponents drift OPPONENT_FAST_DRIFT
 
 
 def sees_now(clock: Tensor, phase: Tensor) -> Tensor:
@@ -128,7 +137,7 @@ def observe(
 
     # the ball (calculateStateBall)
     ball_new, ball_prior = seen_vel[:, :, 0], prior_vel[:, :, 0]
-    bound = 2.0 * physics.ball_rand * norm(ball_prior)
+    bound = BALL_AGREEMENT * physics.ball_rand * norm(ball_prior)
     agree = ((ball_new - ball_prior).abs() <= bound.unsqueeze(-1)).all(-1)
     ball_v = torch.where(agree.unsqueeze(-1), 0.5 * (ball_new + ball_prior), ball_new)
     kd = physics.kickable_distance
@@ -225,8 +234,8 @@ def extrapolate(
         vx = b_vel[..., 0].unsqueeze(-1)
         drift = torch.where(
             vx > 0,
-            torch.where(vx > 1.0, OPPONENT_FAST_DRIFT, OPPONENT_DRIFT),
-            torch.where(vx < -1.0, -OPPONENT_FAST_DRIFT, -OPPONENT_DRIFT),
+            torch.where(vx > OPPONENT_FAST_SPEED, OPPONENT_FAST_DRIFT, OPPONENT_DRIFT),
+            torch.where(vx < -OPPONENT_FAST_SPEED, -OPPONENT_FAST_DRIFT, -OPPONENT_DRIFT),
         ).expand_as(fastest)
         shift = torch.where(
             fastest.unsqueeze(-1),
@@ -294,28 +303,28 @@ def after_collision(
 
     def turned(axis: int) -> Tensor:
         a, b = own_vel[..., axis], sensed_vel[..., axis]
-        return ((a > 0) != (b > 0)) | (a.abs() < 0.08)
+        return ((a > 0) != (b > 0)) | (a.abs() < TURNED_SPEED)
 
     collided = (
-        (still & (predicted > 0.01) & (d_ball < 0.8))
+        (still & (predicted > PREDICTED_MOVING) & (d_ball < COLLISION_STILL_RANGE))
         | (still & (d_ball < physics.player_size + physics.ball_size))
         | (
-            (d_ball < physics.kickable_distance + 0.5)
+            (d_ball < physics.kickable_distance + COLLISION_RANGE)
             & ~still
             & turned(0)
             & turned(1)
-            & (sensed < 0.25 * predicted)
+            & (sensed < COLLISION_SLOWDOWN * predicted)
         )
     )
     players = prior_pos.shape[1]
     others = norm(prior_pos[:, :, 1:] - me_pos.unsqueeze(2))  # [B, P, P]
     self_mask = torch.eye(players, dtype=torch.bool, device=me_pos.device)
-    nearest = torch.where(self_mask, torch.full_like(others, 1000.0), others).amin(-1)
+    nearest = torch.where(self_mask, torch.full_like(others, NO_PLAYER_DISTANCE), others).amin(-1)
     hit = (collided & (d_ball < nearest)).unsqueeze(-1)
     placed = own_pos + COLLISION_BALL_GAP * unit(direction(to_ball))
     new_pos, new_vel = belief_pos.clone(), belief_vel.clone()
     new_pos[:, :, 0] = torch.where(hit, placed, ball)
-    new_vel[:, :, 0] = torch.where(hit, -0.1 * ball_vel, ball_vel)
+    new_vel[:, :, 0] = torch.where(hit, COLLISION_BALL_BOUNCE * ball_vel, ball_vel)
     return new_pos, new_vel
 
 

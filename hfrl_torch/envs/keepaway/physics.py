@@ -18,6 +18,8 @@ from hfrl_torch.envs.keepaway.params import PhysicsParams, resolve_kernels
 TURN_KIND = 1
 DASH_KIND = 2
 KICK_KIND = 3
+COLLISION_BOUNCE = -0.1  # the factor on a collided object's velocity
+COLLISION_SLACK = 1e-6  # the push apart beyond touching
 
 
 def wrap_angle(angle: Tensor) -> Tensor:
@@ -185,7 +187,7 @@ def resolve_collisions(
     vel: Tensor,
     radius: Tensor,
     max_passes: int = 10,
-    slack: float = 1e-6,
+    slack: float = COLLISION_SLACK,
     kernels: str = "auto",
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Push overlapping objects apart until they touch, then reverse the collided velocities.
@@ -223,7 +225,7 @@ def resolve_collisions(
             collided.numpy(),
         )
         collided = collided.reshape(pos.shape[:-1])
-        vel = torch.where(collided.unsqueeze(-1), -0.1 * vel, vel)
+        vel = torch.where(collided.unsqueeze(-1), COLLISION_BOUNCE * vel, vel)
         return new_pos.reshape(pos.shape), vel, collided
     pairs = torch.triu_indices(num, num, offset=1).T.tolist()
     radii = radius.tolist()
@@ -262,7 +264,7 @@ def resolve_collisions(
             hit[i] = hit[i] | overlap
             hit[j] = hit[j] | overlap
     collided = torch.stack(hit, -1)
-    vel = torch.where(collided.unsqueeze(-1), -0.1 * vel, vel)
+    vel = torch.where(collided.unsqueeze(-1), COLLISION_BOUNCE * vel, vel)
     return torch.stack((torch.stack(xs, -1), torch.stack(ys, -1)), -1), vel, collided
 
 

@@ -12,6 +12,8 @@ from hfrl_torch.envs.keepaway.physics import norm
 END_RUNNING = 0
 END_OUT = 1
 END_TAKEN = 2
+CORNER_SPREAD = 3.0  # a keeper or taker starts up to this far inside its corner, per axis
+BALL_START_INSET = 4.0  # the ball starts this far inside the bottom-left corner, per axis
 
 
 def ball_in_region(ball_pos: Tensor, length: float, width: float) -> Tensor:
@@ -68,10 +70,10 @@ def reset_positions(
     corner_sign = torch.tensor([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0]], device=device, dtype=dtype)
     slot = (k0.unsqueeze(-1) + torch.arange(keepers, device=device)) % keepers  # [B, n]
     corner = corner_sign[slot.clamp(max=2)]  # [B, n, 2]
-    corner_pos = corner * (half - 3.0 * u_keep)
+    corner_pos = corner * (half - CORNER_SPREAD * u_keep)
     centre_pos = 2.0 * u_keep - 1.0
     keeper_pos = torch.where((slot < 3).unsqueeze(-1), corner_pos, centre_pos)
     taker_corner = torch.tensor([-1.0, 1.0], device=device, dtype=dtype)
-    taker_pos = taker_corner * (half - 3.0 * u_take)
-    ball_pos = (-half + 4.0).expand(batch, 2).clone()
+    taker_pos = taker_corner * (half - CORNER_SPREAD * u_take)
+    ball_pos = (-half + BALL_START_INSET).expand(batch, 2).clone()
     return keeper_pos, taker_pos, ball_pos

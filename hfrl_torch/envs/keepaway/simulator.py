@@ -15,7 +15,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from hfrl_torch.envs.keepaway.compiled_cycle import Advance, CompiledCycle
+from hfrl_torch.envs.keepaway.compiled import Advance, CompiledCycle
 from hfrl_torch.envs.keepaway.keepers import fastest_keeper, keeper_commands
 from hfrl_torch.envs.keepaway.params import KeepawayConfig, resolve_kernels
 from hfrl_torch.envs.keepaway.perception import (

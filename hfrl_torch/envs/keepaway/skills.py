@@ -35,10 +35,22 @@ MARK_BUFFER = 2.0
 HOLD_RATIO_KEEPER = 0.7  # HoldBall puts the ball at player+ball size + ratio * kickable_margin
 HOLD_RATIO_TAKER = 0.3
 REPOSITION_RATIO = 0.16  # kickBallCloseToBody's default ratio
-HOLD_OPPONENT_RANGE = 5.0
-HOLD_SPOT_TOLERANCE = 0.3
+HOLD_OPPONENT_RANGE = 5.0  # HoldBall heeds the nearest opponent within this distance
+HOLD_SIDE_ANGLE = math.radians(45.0)  # ... and puts the ball this far off the line from it
+HOLD_SPOT_TOLERANCE = 0.3  # HoldBall turns instead of kicking when the ball lies this close to its spot
+HOLD_STAYS = 0.85  # ... and stays within this share of the kickable distance next cycle
 PASS_END_SPEED = 1.2
 WHEN_TO_KICK = 0.85  # PlayerWhenToKick
+PASS_POWER_RATIO = 1.05  # PassBall kicks if it needs at most this share of the maximum power ...
+PASS_POWER_RATIO_PRESSED = 1.30  # ... or this share with an opponent near the ball
+FREEZE_MIN_SPEED = 0.1  # kickBallCloseToBody freezes a ball faster than this that it cannot redirect
+FREEZE_STAYS = 0.8  # freezeBall stops the ball if it then lies within this share of the kickable distance
+FREEZE_PULL_REACH = 0.7  # ... else pulls it to this share of the kickable distance from the player
+FREEZE_PULL_GAP = 0.1  # ... or its distance less this, if nearer
+INTERCEPT_FACE_DISTANCE = 0.5  # GoToBall faces the ball with its rolled-out position this near the point
+INTERCEPT_BEHIND_DISTANCE = 2.5  # ... turns to a point behind it farther than this
+INTERCEPT_FAR, INTERCEPT_MID = 20.0, 10.0  # ... and to one off its body line (distances to the point)
+INTERCEPT_LATERAL_FAR, INTERCEPT_LATERAL_MID, INTERCEPT_LATERAL_NEAR = 3.0, 2.0, 0.9  # x kickable distance
 GOAL_X = 52.5  # the pitch's goal line, the point HoldBall turns to when the ball lies well
 CONE_WIDTH = 0.3  # GetOpen's pass cone: off-line distance per metre along the pass
 BLOCKED_PENALTY = 1e9  # congestion added to a GetOpen point whose pass cone holds a taker
@@ -130,14 +142,18 @@ def intercept_move(
     heading = unit(body)
     lateral = (heading[..., 0] * rel[..., 1] - heading[..., 1] * rel[..., 0]).abs()
     far = norm(target - pos)
-    ratio = torch.where(far > 20.0, 3.0, torch.where(far > 10.0, 2.0, 0.9))
+    ratio = torch.where(
+        far > INTERCEPT_FAR,
+        INTERCEPT_LATERAL_FAR,
+        torch.where(far > INTERCEPT_MID, INTERCEPT_LATERAL_MID, INTERCEPT_LATERAL_NEAR),
+    )
     err = wrap_angle(direction(rel) - body)
-    behind = (norm(rel) > 2.5) & (err.abs() > 0.5 * math.pi)
+    behind = (norm(rel) > INTERCEPT_BEHIND_DISTANCE) & (err.abs() > 0.5 * math.pi)
     turn_needed = ((lateral > ratio * kickable) | behind) & (err.abs() > WHEN_TO_TURN)
     turn = face_point(pos, vel, body, target, physics)
     dash = command(DASH_KIND, dash_power_to_point(pos, vel, body, target, physics), 0.0, body)
     move = choose(turn_needed, turn, dash)
-    return choose(norm(rel) < 0.5, face_point(pos, vel, body, ball_pos, physics), move)
+    return choose(norm(rel) < INTERCEPT_FACE_DISTANCE, face_point(pos, vel, body, ball_pos, physics), move)
 
 
 # ----------------------------------------------------------------------------- GoToBall
@@ -404,10 +420,12 @@ def freeze_ball(
     power = (norm(ball_vel) / rate.clamp_min(1e-6)).clamp(max=physics.max_power)
     against = direction(ball_vel) + math.pi
     stopped = ball_pos + ball_vel + (power * rate).unsqueeze(-1) * unit(against)
-    stays = norm(stopped - me_next) < 0.8 * physics.kickable_distance
+    stays = norm(stopped - me_next) < FREEZE_STAYS * physics.kickable_distance
     freeze = command(KICK_KIND, power, wrap_angle(against - body), body)
     offset = ball_pos - me_next
-    reach = torch.minimum(norm(offset) - 0.1, torch.full_like(power, 0.7 * physics.kickable_distance))
+    reach = torch.minimum(
+        norm(offset) - FREEZE_PULL_GAP, torch.full_like(power, FREEZE_PULL_REACH * physics.kickable_distance)
+    )
     inside = me_next + reach.unsqueeze(-1) * unit(direction(offset))
     pull_in = accelerate_ball_to_velocity(inside - ball_pos, ball_vel, rate, body, physics)
     return choose(stays, freeze, pull_in)
@@ -437,7 +455,7 @@ def kick_ball_close_to_body(
     kick = kick_for_acceleration(spot - ball_pos - ball_vel, rate, body)
     too_strong = kick[..., 1] > physics.max_power
     capped = torch.cat((kick[..., :1], kick[..., 1:2].clamp(max=physics.max_power), kick[..., 2:]), dim=-1)
-    freeze = too_strong & (norm(ball_vel) > 0.1)
+    freeze = too_strong & (norm(ball_vel) > FREEZE_MIN_SPEED)
     if not bool(freeze.any()):  # the common case: skip the freeze kick's arithmetic for every field
         return capped
     return choose(freeze, freeze_ball(pos, vel, body, ball_pos, ball_vel, physics, rate), capped)
@@ -486,7 +504,7 @@ def hold_ball(
         close = torch.gather(to_ball, -1, nearest).squeeze(-1) < HOLD_OPPONENT_RANGE
         away = direction(pos - near_pos)
         side = torch.where(wrap_angle(near_body - away) > 0, -1.0, 1.0)
-        relative = wrap_angle(away + side * math.radians(45.0) - body)
+        relative = wrap_angle(away + side * HOLD_SIDE_ANGLE - body)
         relative = torch.where(close, relative, torch.zeros_like(body))
         angle = wrap_angle(body + relative)
         test_spot = pos + ratio * unit(relative)
@@ -496,8 +514,8 @@ def hold_ball(
         near_pos = torch.gather(opp_pos, -2, nearest.unsqueeze(-1).expand(-1, 1, 2)).squeeze(-2)
         close = torch.gather(opp_dist, -1, nearest).squeeze(-1) < HOLD_OPPONENT_RANGE
         away = direction(pos - near_pos)
-        plus = wrap_angle(away + math.radians(45.0))
-        minus = wrap_angle(away - math.radians(45.0))
+        plus = wrap_angle(away + HOLD_SIDE_ANGLE)
+        minus = wrap_angle(away - HOLD_SIDE_ANGLE)
         plus_nearer = norm(pos + reach * unit(plus) - ball_pos) <= norm(pos + reach * unit(minus) - ball_pos)
         angle = torch.where(close, torch.where(plus_nearer, plus, minus), body)
         test_spot = pos + reach * unit(angle)
@@ -506,7 +524,7 @@ def hold_ball(
     kick = kick_ball_close_to_body(pos, vel, body, ball_pos, ball_vel, angle, ratio, physics)
     goal = torch.tensor([goal_x, 0.0], device=pos.device, dtype=pos.dtype).expand_as(pos)
     turn = face_point(pos, vel, body, goal, physics)
-    stays = norm((ball_pos + ball_vel) - (pos + vel)) < 0.85 * physics.kickable_distance
+    stays = norm((ball_pos + ball_vel) - (pos + vel)) < HOLD_STAYS * physics.kickable_distance
     return choose((norm(ball_pos - test_spot) < HOLD_SPOT_TOLERANCE) & stays, turn, kick)
 
 
@@ -548,8 +566,8 @@ def pass_ball(
     best_speed = norm(ball_vel + full_speed.unsqueeze(-1) * unit(ang))
     too_fast_ok = best_speed > WHEN_TO_KICK * physics.ball_accel_max
     needed = norm(vel_des - ball_vel) / rate.clamp_min(1e-6)
-    power_ok = (needed <= 1.05 * physics.max_power) | (
-        opponent_near_ball & (needed <= 1.30 * physics.max_power)
+    power_ok = (needed <= PASS_POWER_RATIO * physics.max_power) | (
+        opponent_near_ball & (needed <= PASS_POWER_RATIO_PRESSED * physics.max_power)
     )
     ok = torch.where(speed > physics.ball_speed_max, too_fast_ok, power_ok)
     return choose(ok, shoot, reposition)

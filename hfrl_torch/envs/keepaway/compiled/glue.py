@@ -1,6 +1,6 @@
-"""The glue between :class:`KeepawaySimulator` and the whole-cycle numba kernels (cycle_numba.py):
-the task's constants as arrays, one random stream per field, and the state's tensors as numpy
-views the kernels update in place (``kernels="cycle"``)."""
+"""The glue between :class:`KeepawaySimulator` and the compiled cycle's entry points (kernels.py): the
+task's constants as arrays, one random stream per field, and the state's tensors as one
+:class:`CycleState` of numpy views the kernels update in place (``kernels="cycle"``)."""
 
 from __future__ import annotations
 
@@ -11,11 +11,13 @@ import torch
 from torch import Tensor
 
 from hfrl_torch.common.threads import thread_count
-from hfrl_torch.envs.keepaway import cycle_numba as K
+from hfrl_torch.envs.keepaway.compiled import common as C
+from hfrl_torch.envs.keepaway.compiled import kernels as K
+from hfrl_torch.envs.keepaway.compiled.common import CycleState
+from hfrl_torch.envs.keepaway.compiled.policies import POLICY_CODES
 from hfrl_torch.envs.keepaway.params import KeepawayConfig
 from hfrl_torch.envs.keepaway.skills import _reach_table, get_open_grid
 
-POLICY_CODES = {"hold": 0, "random": 1, "hand": 2}
 # Fields a thread needs before a second one gains (a prange region costs 4-11 us here): kernels that play
 # cycles (several us a field) split small batches, the per-field bookkeeping (under 1 us a field) only large.
 MIN_FIELDS_PER_THREAD = 64
@@ -29,71 +31,53 @@ def _parts(batch: int, playing: bool = False) -> int:
     return thread_count(batch, MIN_PLAYING_FIELDS_PER_THREAD if playing else MIN_FIELDS_PER_THREAD)
 
 
-_STATE_ORDER = (
-    "pos",
-    "vel",
-    "body",
-    "counter",
-    "episode_cycles",
-    "last_decision",
-    "prev_holder",
-    "pass_target",
-    "action_start",
-    "clock",
-    "see_phase",
-    "seen_pos",
-    "seen_vel",
-    "seen_body",
-)
-
-
 def task_arrays(config: KeepawayConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The kernels' float parameters, integer parameters, per-cycle look-ahead tables [7, H + 1]
     (computed in float32 as the torch path does) and GetOpen grid [25, 2]."""
     p = config.physics
     accel = min(p.max_power * p.dash_power_rate, p.player_accel_max)
     cruise = min(accel / (1.0 - p.player_decay), p.player_speed_max)
-    prm = np.zeros(K.NUM_PRM)
+    prm = np.zeros(C.NUM_PRM)
     for index, value in (
-        (K.KD, p.kickable_distance),
-        (K.B_DECAY, p.ball_decay),
-        (K.B_RAND, p.ball_rand),
-        (K.B_ACC, p.ball_accel_max),
-        (K.B_SPEED, p.ball_speed_max),
-        (K.B_SIZE, p.ball_size),
-        (K.P_DECAY, p.player_decay),
-        (K.P_RAND, p.player_rand),
-        (K.P_SIZE, p.player_size),
-        (K.P_SPEED, p.player_speed_max),
-        (K.P_ACC, p.player_accel_max),
-        (K.MARGIN, p.kickable_margin),
-        (K.DASH_RATE, p.dash_power_rate),
-        (K.KICK_RATE, p.kick_power_rate),
-        (K.MIN_DASH, p.min_dash_power),
-        (K.MAX_POWER, p.max_power),
-        (K.KICK_RAND, p.kick_rand),
-        (K.INERTIA, p.inertia_moment),
-        (K.MAX_MOMENT, p.max_moment),
-        (K.LENGTH, config.length),
-        (K.WIDTH, config.width),
-        (K.DASH_ACC, accel),
-        (K.CRUISE, cruise),
+        (C.KD, p.kickable_distance),
+        (C.B_DECAY, p.ball_decay),
+        (C.B_RAND, p.ball_rand),
+        (C.B_ACC, p.ball_accel_max),
+        (C.B_SPEED, p.ball_speed_max),
+        (C.B_SIZE, p.ball_size),
+        (C.P_DECAY, p.player_decay),
+        (C.P_RAND, p.player_rand),
+        (C.P_SIZE, p.player_size),
+        (C.P_SPEED, p.player_speed_max),
+        (C.P_ACC, p.player_accel_max),
+        (C.MARGIN, p.kickable_margin),
+        (C.DASH_RATE, p.dash_power_rate),
+        (C.KICK_RATE, p.kick_power_rate),
+        (C.MIN_DASH, p.min_dash_power),
+        (C.MAX_POWER, p.max_power),
+        (C.KICK_RAND, p.kick_rand),
+        (C.INERTIA, p.inertia_moment),
+        (C.MAX_MOMENT, p.max_moment),
+        (C.LENGTH, config.length),
+        (C.WIDTH, config.width),
+        (C.DASH_ACC, accel),
+        (C.CRUISE, cruise),
     ):
         prm[index] = value
-    ip = np.zeros(K.NUM_IP, dtype=np.int64)
+    ip = np.zeros(C.NUM_IP, dtype=np.int64)
     for index, value in (
-        (K.N, config.keepers),
-        (K.M, config.takers),
-        (K.HORIZON, config.intercept_horizon),
-        (K.PASSES, config.collision_passes),
-        (K.TURNOVER, config.turnover),
-        (K.PERIOD, config.decision_period_cycles),
-        (K.SERVER_PERCEPTION, config.perception == "server"),
-        (K.NOISY_OBS, config.noisy_observations),
-        (K.REFERENCE_HOLD, config.hold_ball == "reference"),
-        (K.SERVER_TIMING, config.decision_timing == "server"),
-        (K.NOISE, config.movement_noise),
-        (K.POLAR, p.polar_noise),
+        (C.N, config.keepers),
+        (C.M, config.takers),
+        (C.HORIZON, config.intercept_horizon),
+        (C.PASSES, config.collision_passes),
+        (C.TURNOVER, config.turnover),
+        (C.PERIOD, config.decision_period_cycles),
+        (C.SERVER_PERCEPTION, config.perception == "server"),
+        (C.NOISY_OBS, config.noisy_observations),
+        (C.REFERENCE_HOLD, config.hold_ball == "reference"),
+        (C.SERVER_TIMING, config.decision_timing == "server"),
+        (C.NOISE, config.movement_noise),
+        (C.POLAR, p.polar_noise),
     ):
         ip[index] = int(value)
     steps = torch.arange(config.intercept_horizon + 1, dtype=torch.float32)
@@ -138,20 +122,21 @@ class CompiledCycle:
         self._no_rewards = np.zeros(batch, dtype=np.float32)
         self._no_actions = np.zeros(batch, dtype=np.int64)
         self._no_first = np.zeros(batch, dtype=np.bool_)
-        self._views: tuple[object, tuple[np.ndarray, ...]] | None = None
+        self._views: tuple[object, CycleState] | None = None
 
     def reseed(self, seed: int) -> None:
         """Restart every field's random stream from ``seed``."""
         self.rng[:] = seed_streams(seed, self.batch)
 
-    def arrays(self, state: object) -> tuple[np.ndarray, ...]:
-        """The state's tensors as numpy views (cached while the state object stays the same)."""
+    def arrays(self, state: object) -> CycleState:
+        """The state's tensors as one :class:`CycleState` of numpy views, built once per state object
+        (cached while the state object stays the same)."""
         if self._views is not None and self._views[0] is state:
             return self._views[1]
-        tensors = [getattr(state, name) for name in _STATE_ORDER]
+        tensors = [getattr(state, name) for name in CycleState._fields]
         if not all(t.is_contiguous() for t in tensors):
             raise RuntimeError("kernels='cycle' needs contiguous state tensors")
-        views = tuple(t.numpy() for t in tensors)
+        views = CycleState(*(t.numpy() for t in tensors))
         self._views = (state, views)
         return views
 
@@ -163,7 +148,7 @@ class CompiledCycle:
         """One cycle in place on ``state`` with the torch path's uniforms [B, U]; the end causes [B]."""
         cause = torch.zeros(self.batch, dtype=torch.long)
         K.cycle(
-            *self.arrays(state),
+            self.arrays(state),
             actions.numpy(),
             active.numpy(),
             uniforms,
@@ -178,21 +163,12 @@ class CompiledCycle:
 
     def decisions(self, state: object) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """Holder, kickable, must-decide [B] and the holder's state variables [B, F] (float32)."""
-        a = self.arrays(state)
         holder = torch.empty(self.batch, dtype=torch.long)
         kickable = torch.empty(self.batch, dtype=torch.bool)
         must = torch.empty(self.batch, dtype=torch.bool)
         obs = torch.empty(self.batch, self.config.num_state_vars, dtype=torch.float32)
         K.decisions(
-            a[0],
-            a[2],
-            a[9],
-            a[10],
-            a[11],
-            a[7],
-            a[6],
-            a[4],
-            a[8],
+            self.arrays(state),
             self.prm,
             self.ip,
             holder.numpy(),
@@ -206,11 +182,10 @@ class CompiledCycle:
     def observations(self, state: object, decider: Tensor) -> tuple[Tensor, Tensor]:
         """Keeper ``decider`` [B]'s state variables [B, F] (float32) and teammate order [B, n - 1], as
         the compiled cycle numbers the teammates."""
-        a = self.arrays(state)
         obs = torch.empty(self.batch, self.config.num_state_vars, dtype=torch.float32)
         order = torch.empty(self.batch, self.config.keepers - 1, dtype=torch.long)
         deciders = decider.to(torch.long).contiguous().numpy()
-        K.observations(a[0], a[2], a[11], deciders, self.ip, obs.numpy(), order.numpy(), _parts(self.batch))
+        K.observations(self.arrays(state), deciders, self.ip, obs.numpy(), order.numpy(), _parts(self.batch))
         return obs, order
 
     def advance(
@@ -254,7 +229,7 @@ class CompiledCycle:
         cause: np.ndarray,
     ) -> None:
         """:meth:`advance` on numpy arrays, writing the cycles and end causes into ``cycles``, ``cause``."""
-        common = (*self.arrays(state), self.rng, actions, first, running)
+        common = (self.arrays(state), self.rng, actions, first, running)
         tail = (self.prm, self.ip, self.tabs, self.grid, cycles, cause)
         if sync == "all":
             ok = K.advance_fields(*common, restart, max_cycles, *tail, _parts(self.batch, True)) == 0
@@ -302,8 +277,7 @@ class CompiledCycle:
     def reset(self, state: object, mask: np.ndarray) -> None:
         """A new episode on the ``mask`` [B] fields (bool numpy), each drawn from its own stream, in
         place; the other fields are untouched."""
-        a = self.arrays(state)
-        K.reset_fields(*a[:9], *a[11:], self.rng, mask, self.prm, self.ip, _parts(self.batch))
+        K.reset_fields(self.arrays(state), self.rng, mask, self.prm, self.ip, _parts(self.batch))
 
     def env_outputs(
         self,
@@ -317,19 +291,9 @@ class CompiledCycle:
         reward: np.ndarray,
     ) -> None:
         """KeepawayEnv's outputs after a step or a reset of ``fields``, in place (see
-        ``cycle_numba.env_outputs``; ``outputs`` in the env's ``_OUTPUT_KEYS`` order)."""
-        a = self.arrays(state)
+        ``kernels.env_outputs``; ``outputs`` in the env's ``_OUTPUT_KEYS`` order)."""
         K.env_outputs(
-            a[0],
-            a[2],
-            a[4],
-            a[5],
-            a[6],
-            a[7],
-            a[8],
-            a[9],
-            a[10],
-            a[11],
+            self.arrays(state),
             fields,
             cause,
             cycles,
@@ -353,7 +317,7 @@ class CompiledCycle:
         causes = torch.zeros(self.batch, episodes_per_field, dtype=torch.long)
         played = torch.zeros(self.batch, dtype=torch.long)
         total = K.play(
-            *self.arrays(state),
+            self.arrays(state),
             self.rng,
             POLICY_CODES[policy],
             max_cycles,
@@ -369,5 +333,5 @@ class CompiledCycle:
         return durations, causes, played, int(total)
 
     def uniform_count(self) -> int:
-        """Uniforms per field and cycle (see ``cycle_numba.uniform_count``)."""
-        return int(K.uniform_count(self.ip))
+        """Uniforms per field and cycle (see ``common.uniform_count``)."""
+        return int(C.uniform_count(self.ip))
