@@ -211,6 +211,7 @@ class KeepawayEnv(EnvBase):
         source[keys.TRUNCATED] = torch.zeros_like(done)
         if reward is not None:
             source[keys.REWARD] = reward.unsqueeze(-1)
+        # private: the public constructor's per-entry checks cost ~33 us a call (~5 % of a B = 1 step)
         return TensorDict._new_unsafe(source, batch_size=self.batch_size, device=self.device)
 
     def _compiled_reset(self, mask: torch.Tensor) -> TensorDict:
