@@ -68,13 +68,9 @@ def job_overrides(overrides: list[str], config_name: str, multirun: bool) -> tup
     return BasicSweeper.split_arguments(parser.parse_overrides(declared + overrides), None)[0], True
 
 
-def job_dir(config_name: str, overrides: list[str], index: int | None) -> Path | None:
+def _job_dir(hydra: DictConfig, index: int | None) -> Path | None:
     """The directory a job will write to (a single run's ``hydra.run.dir``, a sweep job's
     ``hydra.sweep.dir/<subdir>``); None for ``evaluate.py``, which writes none."""
-    return _job_dir(_compose(config_name, overrides, hydra=True).hydra, index)
-
-
-def _job_dir(hydra: DictConfig, index: int | None) -> Path | None:
     if hydra.get("output_subdir") is None:
         return None
     if index is None:

@@ -139,11 +139,6 @@ class SarsaLambda:
         return torch.where(explore_draw < self.epsilon, uniform, greedy)
 
     @torch.no_grad()
-    def greedy_actions(self, learners: torch.Tensor, obs: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-        """The greedy actions [M] (random ties, no exploration, no learning): for evaluation."""
-        return self.select(self.coder(self.tables[learners], self.coder.tiles(obs)), mask, explore=False)
-
-    @torch.no_grad()
     def action_values(self, learners: torch.Tensor, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The active tiles [M, A, N] and Q [M, A] of each row's state (lines 1-3 / 11-13), for a caller that
         fuses Q with other values before :meth:`decide` chooses."""
