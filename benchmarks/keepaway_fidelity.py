@@ -1,8 +1,8 @@
 """Ablations of docs/keepaway.md "Fidelity": the benchmark policies and the Sarsa keepers' learning
 curve under one choice of the simulator's and the learner's details. Prints one JSON object.
 
-    PYTHONPATH=. python benchmarks/keepaway_fidelity.py policies --preset rcss19 [domain options]
-    PYTHONPATH=. python benchmarks/keepaway_fidelity.py learn --preset rcss19 [domain and learner options]
+    python benchmarks/keepaway_fidelity.py policies --preset rcss19 [domain options]
+    python benchmarks/keepaway_fidelity.py learn --preset rcss19 [domain and learner options]
 
 Domain options are ``KeepawayConfig`` fields (``--perception server --hold-ball reference
 --decision-timing server --movement-noise false``). ``policies`` plays Always Hold, Random and

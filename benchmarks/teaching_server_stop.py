@@ -4,7 +4,7 @@ Each page is a real WebSocket client (aiohttp, its own thread) connected with th
 server closed its pages first, a stop with a page open waited out a 10 s join timeout. Prints one JSON line
 per number of pages: the stop's wall seconds over ``--trials`` trials.
 
-    PYTHONPATH=. python benchmarks/teaching_server_stop.py [--pages 0 1 4] [--trials 5]
+    python benchmarks/teaching_server_stop.py [--pages 0 1 4] [--trials 5]
 """
 
 from __future__ import annotations
