@@ -25,15 +25,13 @@ import time
 from pathlib import Path
 
 import torch
-from hydra import compose, initialize_config_dir
 
 from hfrl_torch.agents.sarsa import SarsaLambda
 from hfrl_torch.agents.sarsa.sarsa_numba import SarsaLambdaNumba
 from hfrl_torch.envs.keepaway import KeepawayConfig
 from hfrl_torch.envs.keepaway.benchmark_policies import play_benchmark_policy
 from hfrl_torch.envs.keepaway.records import CYCLES_PER_HOUR, CYCLES_PER_SECOND
-from hfrl_torch.experiment.cli import CONF_DIR
-from hfrl_torch.experiment.config import validate_train
+from hfrl_torch.experiment.cli import compose_train
 from hfrl_torch.experiment.registry import learner_for
 from hfrl_torch.experiment.run import Interrupt, RunFiles
 from hfrl_torch.experiment.run import learn as run_learner
@@ -93,9 +91,7 @@ def learn(args: argparse.Namespace) -> dict:
         # first ties patch SarsaLambda.select, which the compiled learner's decisions do not call
         *(["agent.kernels=torch"] if args.ties == "first" else []),
     ]
-    with initialize_config_dir(str(CONF_DIR), version_base=None):
-        cfg = compose("train", overrides=overrides)
-    validate_train(cfg)
+    cfg = compose_train(*overrides)
     with tempfile.TemporaryDirectory() as run_dir:
         learner = learner_for("sarsa")(cfg, Path(run_dir), None)
         agent = learner.agent_sarsa

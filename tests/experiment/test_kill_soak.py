@@ -46,12 +46,10 @@ from typing import Any
 
 import numba
 import torch
-from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
 
 from hfrl_torch.common.checkpoint import load_checkpoint
-from hfrl_torch.experiment import cli
-from hfrl_torch.experiment.config import validate_train
+from hfrl_torch.experiment.cli import compose_train
 from hfrl_torch.experiment.learners import tetris_games
 from hfrl_torch.experiment.registry import learner_for
 from hfrl_torch.experiment.run import RunFiles, learn
@@ -85,13 +83,6 @@ CONFIGS = {
 SOAK_SAVE_EVERY_S = 0.3
 WALL_KEYS = ("time/", "field_cycles_per_s", "wall_s")
 RUN = "run"  # every run directory's name: the feedback sessions are named after it
-
-
-def compose_train(overrides: list[str]) -> DictConfig:
-    with initialize_config_dir(str(cli.CONF_DIR), version_base=None):
-        cfg = compose("train", overrides=["logger.backend=none", *overrides])
-    validate_train(cfg)
-    return cfg
 
 
 def _train(cfg: DictConfig, run_dir: Path) -> None:
@@ -267,7 +258,7 @@ def main() -> None:
     out: dict[str, Any] = {"command": " ".join(sys.argv), "seed": args.seed, "configs": {}}
     started = time.perf_counter()
     for name in args.configs.split(","):
-        cfg = compose_train([*CONFIGS[name], f"seed={args.seed + 7}"])
+        cfg = compose_train("logger.backend=none", *CONFIGS[name], f"seed={args.seed + 7}")
         walls = []
         for repeat in ("warm-up", "reference"):
             reference = root / f"{name}-{repeat}" / RUN
@@ -342,7 +333,7 @@ def main() -> None:
 def test_a_killed_and_resumed_run_ends_as_the_uninterrupted_one(tmp_path):
     """One trial of the cheapest config, shortened: killed once between its first checkpoint and its end,
     resumed, and compared with the uninterrupted run."""
-    cfg = compose_train([*CONFIGS["cem+fusion"], "agent.iterations=4", "seed=7"])
+    cfg = compose_train("logger.backend=none", *CONFIGS["cem+fusion"], "agent.iterations=4", "seed=7")
     reference = tmp_path / "reference" / RUN
     _, code, wall, first = wait(spawn(cfg, reference), None, reference / "checkpoints" / "last.pt")
     assert code == 0, (tmp_path / "errors.txt").read_text()
