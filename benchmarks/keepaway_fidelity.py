@@ -26,7 +26,6 @@ from pathlib import Path
 
 import torch
 
-from hfrl_torch.agents.sarsa import SarsaLambda
 from hfrl_torch.agents.sarsa.sarsa_numba import SarsaLambdaNumba
 from hfrl_torch.envs.keepaway import KeepawayConfig
 from hfrl_torch.envs.keepaway.benchmark_policies import play_benchmark_policy
@@ -88,7 +87,7 @@ def learn(args: argparse.Namespace) -> dict:
             for name in ("preset", "perception", "hold_ball", "decision_timing", "movement_noise")
         ),
         f"domain.noisy_observations={str(config.noisy_observations).lower()}",
-        # first ties patch SarsaLambda.select, which the compiled learner's decisions do not call
+        # first ties are SarsaLambda.ties, which the compiled learner's decisions do not read
         *(["agent.kernels=torch"] if args.ties == "first" else []),
     ]
     cfg = compose_train(*overrides)
@@ -98,7 +97,9 @@ def learn(args: argparse.Namespace) -> dict:
         if args.initial_q:
             agent.coder.weight.fill_(args.initial_q / agent.coder.active_tiles)
         if args.ties == "first":
-            _use_first_ties(agent)
+            if isinstance(agent, SarsaLambdaNumba):
+                raise ValueError("--ties first: the compiled learner never reads SarsaLambda.ties")
+            agent.ties = "first"
         start = time.perf_counter()
         run_learner(learner, RunFiles(Path(run_dir), cfg), [], Interrupt())
         wall = time.perf_counter() - start
@@ -114,26 +115,6 @@ def learn(args: argparse.Namespace) -> dict:
             }
         )
     return {"config": vars(args), "wall_s": round(wall, 1), "curve": curve}
-
-
-def _use_first_ties(agent: SarsaLambda) -> None:
-    """Greedy ties to the lowest action; exploration draws as in :meth:`SarsaLambda.select`."""
-    if isinstance(agent, SarsaLambdaNumba):
-        raise ValueError("--ties first patches the torch learner's select; the compiled one never calls it")
-
-    def select(q: torch.Tensor, mask: torch.Tensor, explore: bool = True) -> torch.Tensor:
-        m, a = q.shape
-        torch.rand(m, a, generator=agent.generator, device=q.device)  # the tie draw, unused
-        random_noise = torch.rand(m, a, generator=agent.generator, device=q.device)
-        explore_draw = torch.rand(m, generator=agent.generator, device=q.device)
-        best = q.masked_fill(~mask, -torch.inf).amax(1, keepdim=True)
-        greedy = (mask & (q == best)).to(torch.int8).argmax(1)
-        if not explore:
-            return greedy
-        uniform = torch.where(mask, random_noise, -1.0).argmax(1)
-        return torch.where(explore_draw < agent.epsilon, uniform, greedy)
-
-    agent.select = select
 
 
 def main() -> None:
