@@ -19,7 +19,7 @@ from hfrl_torch.experiment.learners.tetris_cem import CEMLearner
 from hfrl_torch.experiment.run import RunFiles, learn
 from hfrl_torch.feedback.log import load_feedback_log, read_feedback_log
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 TINY = [
     "domain.width=6",
     "domain.height=8",

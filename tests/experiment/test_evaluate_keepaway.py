@@ -24,7 +24,7 @@ from hfrl_torch.models.tile_coding import TileCoding
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 SMALL = ["agent.learners=2", "agent.table_bits=12", "agent.hours=0.003"]
 KEYS = (
     "domain",
