@@ -34,13 +34,11 @@ import torch
 torch.set_num_threads(1)
 numba.set_num_threads(1)
 
-from hydra import compose, initialize_config_dir  # noqa: E402
 from tensordict import TensorDictBase  # noqa: E402
 
 from hfrl_torch.envs.tetris.engine_numba import NumbaEngine  # noqa: E402
 from hfrl_torch.envs.tetris.features import BT  # noqa: E402
-from hfrl_torch.experiment.cli import CONF_DIR  # noqa: E402
-from hfrl_torch.experiment.config import validate_train  # noqa: E402
+from hfrl_torch.experiment.cli import compose_train  # noqa: E402
 from hfrl_torch.experiment.learners.tetris_dqn import TetrisDQN  # noqa: E402
 
 TAUGHT = ("fusion=linear", "trainer=oracle", "human=mlp")
@@ -48,11 +46,7 @@ TAUGHT = ("fusion=linear", "trainer=oracle", "human=mlp")
 
 def make_learner(boards: int, run_dir: Path, *overrides: str) -> TetrisDQN:
     """The ``agent=dqn`` Tetris learner of ``train.py`` with ``boards`` boards (its collector built)."""
-    with initialize_config_dir(str(CONF_DIR), version_base=None):
-        cfg = compose(
-            "train", overrides=["agent=dqn", f"agent.boards={boards}", "logger.backend=none", *overrides]
-        )
-    validate_train(cfg)
+    cfg = compose_train("agent=dqn", f"agent.boards={boards}", "logger.backend=none", *overrides)
     return TetrisDQN(cfg, run_dir)
 
 

@@ -1,8 +1,8 @@
 """Ablations of docs/keepaway.md "Fidelity": the benchmark policies and the Sarsa keepers' learning
 curve under one choice of the simulator's and the learner's details. Prints one JSON object.
 
-    PYTHONPATH=. python benchmarks/keepaway_fidelity.py policies --preset rcss19 [domain options]
-    PYTHONPATH=. python benchmarks/keepaway_fidelity.py learn --preset rcss19 [domain and learner options]
+    python benchmarks/keepaway_fidelity.py policies --preset rcss19 [domain options]
+    python benchmarks/keepaway_fidelity.py learn --preset rcss19 [domain and learner options]
 
 Domain options are ``KeepawayConfig`` fields (``--perception server --hold-ball reference
 --decision-timing server --movement-noise false``). ``policies`` plays Always Hold, Random and
@@ -25,15 +25,12 @@ import time
 from pathlib import Path
 
 import torch
-from hydra import compose, initialize_config_dir
 
-from hfrl_torch.agents.sarsa import SarsaLambda
 from hfrl_torch.agents.sarsa.sarsa_numba import SarsaLambdaNumba
 from hfrl_torch.envs.keepaway import KeepawayConfig
 from hfrl_torch.envs.keepaway.benchmark_policies import play_benchmark_policy
 from hfrl_torch.envs.keepaway.records import CYCLES_PER_HOUR, CYCLES_PER_SECOND
-from hfrl_torch.experiment.cli import CONF_DIR
-from hfrl_torch.experiment.config import validate_train
+from hfrl_torch.experiment.cli import compose_train
 from hfrl_torch.experiment.registry import learner_for
 from hfrl_torch.experiment.run import Interrupt, RunFiles
 from hfrl_torch.experiment.run import learn as run_learner
@@ -90,19 +87,19 @@ def learn(args: argparse.Namespace) -> dict:
             for name in ("preset", "perception", "hold_ball", "decision_timing", "movement_noise")
         ),
         f"domain.noisy_observations={str(config.noisy_observations).lower()}",
-        # first ties patch SarsaLambda.select, which the compiled learner's decisions do not call
+        # first ties are SarsaLambda.ties, which the compiled learner's decisions do not read
         *(["agent.kernels=torch"] if args.ties == "first" else []),
     ]
-    with initialize_config_dir(str(CONF_DIR), version_base=None):
-        cfg = compose("train", overrides=overrides)
-    validate_train(cfg)
+    cfg = compose_train(*overrides)
     with tempfile.TemporaryDirectory() as run_dir:
         learner = learner_for("sarsa", "keepaway")(cfg, Path(run_dir), None)
         agent = learner.agent_sarsa
         if args.initial_q:
             agent.coder.weight.fill_(args.initial_q / agent.coder.active_tiles)
         if args.ties == "first":
-            _use_first_ties(agent)
+            if isinstance(agent, SarsaLambdaNumba):
+                raise ValueError("--ties first: the compiled learner never reads SarsaLambda.ties")
+            agent.ties = "first"
         start = time.perf_counter()
         run_learner(learner, RunFiles(Path(run_dir), cfg), [], Interrupt())
         wall = time.perf_counter() - start
@@ -118,26 +115,6 @@ def learn(args: argparse.Namespace) -> dict:
             }
         )
     return {"config": vars(args), "wall_s": round(wall, 1), "curve": curve}
-
-
-def _use_first_ties(agent: SarsaLambda) -> None:
-    """Greedy ties to the lowest action; exploration draws as in :meth:`SarsaLambda.select`."""
-    if isinstance(agent, SarsaLambdaNumba):
-        raise ValueError("--ties first patches the torch learner's select; the compiled one never calls it")
-
-    def select(q: torch.Tensor, mask: torch.Tensor, explore: bool = True) -> torch.Tensor:
-        m, a = q.shape
-        torch.rand(m, a, generator=agent.generator, device=q.device)  # the tie draw, unused
-        random_noise = torch.rand(m, a, generator=agent.generator, device=q.device)
-        explore_draw = torch.rand(m, generator=agent.generator, device=q.device)
-        best = q.masked_fill(~mask, -torch.inf).amax(1, keepdim=True)
-        greedy = (mask & (q == best)).to(torch.int8).argmax(1)
-        if not explore:
-            return greedy
-        uniform = torch.where(mask, random_noise, -1.0).argmax(1)
-        return torch.where(explore_draw < agent.epsilon, uniform, greedy)
-
-    agent.select = select
 
 
 def main() -> None:

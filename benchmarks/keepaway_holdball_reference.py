@@ -12,7 +12,7 @@ ends under both.
 Prints one JSON line per (preset, perception, rule): share of the fields whose first episode ended
 within ``--cycles``, their mean length in seconds and their taken share.
 
-    PYTHONPATH=. python benchmarks/keepaway_holdball_reference.py [--batch 200] [--cycles 600]
+    python benchmarks/keepaway_holdball_reference.py [--batch 200] [--cycles 600]
 """
 
 from __future__ import annotations

@@ -15,7 +15,7 @@ decision timing. Prints one JSON line per variant.
   instead of its soccer heuristics (0.3 m towards the ball, 0.25 m along x);
 * ``keepers_only`` / ``takers_only``: only one team acts on its world model, the other on the truth.
 
-    PYTHONPATH=. python benchmarks/keepaway_perception_parts.py [--policy hand] [--preset rcss19]
+    python benchmarks/keepaway_perception_parts.py [--policy hand] [--preset rcss19]
         [--episodes 500] [--cap-s 60] [--variants ...]
 
 ``--cap-s`` cuts an episode at that length (counted at it; ``cut_share`` says how many): under the

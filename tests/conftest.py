@@ -9,6 +9,8 @@ import pytest
 import torch
 from hypothesis import settings
 
+from hfrl_torch.experiment.cli import compose_train as _compose_train
+
 settings.register_profile("deterministic", derandomize=True, database=None, print_blob=True)
 settings.load_profile("deterministic")
 
@@ -34,19 +36,6 @@ def one_thread() -> Iterator[None]:
     yield
     torch.set_num_threads(torch_threads)
     numba.set_num_threads(numba_threads)
-
-
-def _compose_train(*overrides: str):
-    """The composed (and checked) ``train`` config of ``overrides``, as ``train.py`` would run it."""
-    from hydra import compose, initialize_config_dir
-
-    from hfrl_torch.experiment.cli import CONF_DIR
-    from hfrl_torch.experiment.config import validate_train
-
-    with initialize_config_dir(str(CONF_DIR), version_base=None):
-        cfg = compose("train", overrides=list(overrides))
-    validate_train(cfg)
-    return cfg
 
 
 def _run_learner(run_dir, *overrides: str, checkpoint=None, stop_after: int | None = None, prepare=None):

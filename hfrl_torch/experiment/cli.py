@@ -26,7 +26,7 @@ from omegaconf import DictConfig, OmegaConf
 from hfrl_torch.common.checkpoint import load_checkpoint
 from hfrl_torch.common.errors import UserError
 from hfrl_torch.experiment import resolvers  # noqa: F401  (the config's resolvers, before any composing)
-from hfrl_torch.experiment.config import resume_config
+from hfrl_torch.experiment.config import resume_config, validate_train
 
 CONF_DIR = Path(__file__).resolve().parent.parent.parent / "conf"
 CHECKED = "HFRL_TORCH_CHECKED"  # set once every job of this command was checked up front
@@ -60,7 +60,7 @@ def job_overrides(overrides: list[str], config_name: str, multirun: bool) -> tup
     parser = OverridesParser.create()
     parsed = parser.parse_overrides(overrides)
     base = [o.input_line for o in parsed if not o.is_sweep_override()]
-    hydra_cfg = _compose(config_name, base, hydra=True).hydra
+    hydra_cfg = compose_config(config_name, *base, hydra=True).hydra
     if not str(OmegaConf.select(hydra_cfg, "sweeper._target_", default="")).endswith("BasicSweeper"):
         return [base], False
     params = OmegaConf.select(hydra_cfg, "sweeper.params", default=None) or {}
@@ -68,13 +68,9 @@ def job_overrides(overrides: list[str], config_name: str, multirun: bool) -> tup
     return BasicSweeper.split_arguments(parser.parse_overrides(declared + overrides), None)[0], True
 
 
-def job_dir(config_name: str, overrides: list[str], index: int | None) -> Path | None:
+def _job_dir(hydra: DictConfig, index: int | None) -> Path | None:
     """The directory a job will write to (a single run's ``hydra.run.dir``, a sweep job's
     ``hydra.sweep.dir/<subdir>``); None for ``evaluate.py``, which writes none."""
-    return _job_dir(_compose(config_name, overrides, hydra=True).hydra, index)
-
-
-def _job_dir(hydra: DictConfig, index: int | None) -> Path | None:
     if hydra.get("output_subdir") is None:
         return None
     if index is None:
@@ -93,15 +89,25 @@ def check_fresh(path: Path | None, resuming: bool) -> None:
     )
 
 
-def _compose(config_name: str, overrides: list[str], hydra: bool = False) -> DictConfig:
-    task = overrides if hydra else [o for o in overrides if not o.lstrip("+~").startswith("hydra")]
+def compose_config(config_name: str, *overrides: str, hydra: bool = False) -> DictConfig:
+    """The config ``config_name`` (``train`` or ``evaluate``) composed from ``conf/`` with ``overrides``,
+    unchecked; with ``hydra`` Hydra's own config under ``hydra`` too, otherwise ``hydra.*`` overrides are
+    left out. The one composing helper of the package, its tests and benchmarks."""
+    task = list(overrides) if hydra else [o for o in overrides if not o.lstrip("+~").startswith("hydra")]
     with initialize_config_dir(str(CONF_DIR), version_base=None):
         return compose(config_name, overrides=task, return_hydra_config=hydra)
 
 
+def compose_train(*overrides: str) -> DictConfig:
+    """The composed and checked ``train`` config of ``overrides``, as ``train.py`` would run it."""
+    cfg = compose_config("train", *overrides)
+    validate_train(cfg)
+    return cfg
+
+
 def _split(config_name: str, overrides: list[str]) -> tuple[DictConfig, DictConfig]:
     """The job's config and Hydra's, from one composition (composing is most of a check's cost)."""
-    full = _compose(config_name, overrides, hydra=True)
+    full = compose_config(config_name, *overrides, hydra=True)
     cfg = OmegaConf.masked_copy(full, [k for k in full if k != "hydra"])
     OmegaConf.set_struct(cfg, True)
     return cfg, full.hydra

@@ -21,10 +21,11 @@ from numba import prange
 
 from hfrl_torch.envs.tetris.engine_numba import (
     SPARE_ROWS,
-    _features,
-    _place,
-    _spawn_blocked,
+    best_placement,
+    board_state_features,
     check_weights,
+    piece_afterstates,
+    spawn_blocked,
     spawn_masks,
 )
 from hfrl_torch.envs.tetris.features import BT, KNOX, feature_size
@@ -43,20 +44,6 @@ COMPILED_SCALINGS = ("none", "decision")
 
 _COIN_SALT = 0x5BD1E995
 _COIN_RESOLUTION = 1 << 24
-
-
-@numba.njit(cache=True, inline="always")
-def _better(a: int, v: float, over: bool, best_v: float, best_over: bool) -> bool:
-    return a == 0 or (best_over and not over) or (over == best_over and v > best_v)
-
-
-@numba.njit(cache=True)
-def _argmax(values: np.ndarray, over: np.ndarray, n: int) -> int:
-    best = 0
-    for a in range(1, n):
-        if _better(a, values[a], over[a], values[best], over[best]):
-            best = a
-    return best
 
 
 @numba.njit(cache=True)
@@ -120,9 +107,10 @@ def play_fused_games(
     for g in prange(n_games):
         rows = np.zeros(nrows, np.int64)
         hts = np.zeros(width, np.int64)
-        tmp_rows = np.empty(nrows, np.int64)
-        tmp_h = np.empty(width, np.int64)
-        feat = np.empty(nf, np.float64)
+        after_rows = np.empty((max_actions, nrows), np.int64)
+        after_h = np.empty((max_actions, width), np.int64)
+        feat = np.empty((max_actions, nf), np.float64)
+        after_lines = np.empty(max_actions, np.int64)
         now = np.empty(nf, np.float64)
         r = np.empty(max_actions, np.float64)
         hv = np.empty(max_actions, np.float64)
@@ -145,47 +133,41 @@ def play_fused_games(
                 capped = True
                 break
             na = num_actions[p]
-            _features(rows, hts, width, height, fid, filled, 0.0, 0, now)
+            board_state_features(rows, hts, width, height, fid, filled, now)
+            piece_afterstates(
+                rows,
+                hts,
+                filled,
+                p,
+                width,
+                height,
+                fid,
+                num_actions,
+                row_masks,
+                bottom,
+                top,
+                column,
+                piece_width,
+                piece_height,
+                after_rows,
+                after_h,
+                feat,
+                over,
+                after_lines,
+            )
             any_alive = False
             for a in range(na):
-                lines, land, eroded_cells, end = _place(
-                    rows,
-                    hts,
-                    tmp_rows,
-                    tmp_h,
-                    width,
-                    height,
-                    row_masks[p, a],
-                    bottom[p, a],
-                    top[p, a],
-                    column[p, a],
-                    piece_width[p, a],
-                    piece_height[p, a],
-                )
-                lh = land + 1 + (piece_height[p, a] - 1) / 2.0
-                _features(
-                    tmp_rows,
-                    tmp_h,
-                    width,
-                    height,
-                    fid,
-                    filled + 4 - lines * width,
-                    lh,
-                    lines * eroded_cells,
-                    feat,
-                )
                 rv = 0.0
                 for k in range(n_env):
-                    rv += env_weights[g, k] * feat[k]
+                    rv += env_weights[g, k] * feat[a, k]
                 h = 0.0
                 for k in range(nf):
-                    h += human_weights[g, k] * (feat[k] - now[k])
+                    h += human_weights[g, k] * (feat[a, k] - now[k])
                 r[a] = rv
                 hv[a] = h
-                over[a] = end
-                any_alive = any_alive or not end
-            best_env = _argmax(r, over, na)
-            best_human = _argmax(hv, over, na)
+                any_alive = any_alive or not over[a]
+            best_env = best_placement(r, over, na)
+            best_human = best_placement(hv, over, na)
             h_lo = np.inf
             h_hi = -np.inf
             for a in range(na):
@@ -219,33 +201,21 @@ def play_fused_games(
                         x = hn[a]
                         s = 0.0 if x == 0 else (abs(x) ** w) * (1.0 if x > 0 else -1.0)
                         score[a] = rn[a] * (1.0 + s)
-                pick = _argmax(score, over, na)
+                pick = best_placement(score, over, na)
             human_return += hv[pick]
-            lines, land, eroded_cells, end = _place(
-                rows,
-                hts,
-                tmp_rows,
-                tmp_h,
-                width,
-                height,
-                row_masks[p, pick],
-                bottom[p, pick],
-                top[p, pick],
-                column[p, pick],
-                piece_width[p, pick],
-                piece_height[p, pick],
-            )
+            lines = after_lines[pick]
+            end = over[pick]
             for rr in range(nrows):
-                rows[rr] = tmp_rows[rr]
+                rows[rr] = after_rows[pick, rr]
             for c in range(width):
-                hts[c] = tmp_h[c]
+                hts[c] = after_h[pick, c]
             filled += 4 - lines * width
             lines_total += lines
             i += 1
             if end:
                 break
             p = piece_at(key, i, bag)
-            if spawn_topout and _spawn_blocked(rows, height, width, spawn_mask, p):
+            if spawn_topout and spawn_blocked(rows, height, width, spawn_mask, p):
                 break
         out_lines[g] = lines_total
         out_pieces[g] = i

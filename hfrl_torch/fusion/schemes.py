@@ -9,7 +9,7 @@ the learner is trained on); :class:`~hfrl_torch.fusion.fusion.Fusion` applies th
 
 Knox & Stone, "Combining Manual Feedback with Subsequent MDP Reward Signals for Reinforcement Learning"
 (AAMAS 2010) and "Reinforcement Learning from Simultaneous Human and MDP Reward" (AAMAS 2012) name the
-TAMER+RL techniques offered here: reward shaping, Q augmentation, action biasing and control sharing.
+TAMER+RL techniques; reward shaping, action biasing and control sharing are offered here.
 """
 
 from __future__ import annotations
@@ -27,7 +27,6 @@ __all__ = [
     "OPTIONS",
     "REWARD_SCHEMES",
     "SCHEMES",
-    "TARGET_SCHEMES",
     "VALUE_SCHEMES",
     "Option",
     "Scheme",
@@ -41,8 +40,7 @@ class Scheme(NamedTuple):
     """A fusion rule's name and the levels it can act at.
 
     ``decision``: the values an action is chosen by; ``reward``: the reward the learner is trained on
-    (``FeedbackFusion``); ``target``: the value inside the learner's update target
-    (``max_a' fuse_values(Q(s'), H^(s'), "q_augmentation", beta)``, for an agent to use).
+    (``FeedbackFusion``).
     """
 
     name: str
@@ -58,13 +56,11 @@ SCHEMES: list[Scheme] = [
     Scheme("action_biasing", ("decision",), "Q + beta H at selection only (Knox & Stone)"),
     Scheme("control_sharing", ("decision",), "follow argmax H with probability min(beta, 1) (Knox & Stone)"),
     Scheme("reward_shaping", ("reward",), "R' = R + beta H (Knox & Stone)"),
-    Scheme("q_augmentation", ("target",), "Q + beta H in the update target (Knox & Stone)"),
 ]
 DECISION_SCHEMES: tuple[str, ...] = tuple(s.name for s in SCHEMES if "decision" in s.levels)
 REWARD_SCHEMES: tuple[str, ...] = tuple(s.name for s in SCHEMES if "reward" in s.levels)
-TARGET_SCHEMES: tuple[str, ...] = tuple(s.name for s in SCHEMES if "target" in s.levels)
 VALUE_SCHEMES: tuple[str, ...] = tuple(s.name for s in SCHEMES if s.name != "control_sharing")
-_ADDITIVE = ("linear", "action_biasing", "reward_shaping", "q_augmentation")
+_ADDITIVE = ("linear", "action_biasing", "reward_shaping")
 
 
 class Option(NamedTuple):
@@ -142,9 +138,9 @@ def fuse_values(
     :param scheme: one of ``VALUE_SCHEMES``:
 
         - ``none``: R; ``human_only``: H^;
-        - ``linear`` (eq. 4.2), ``action_biasing``, ``reward_shaping``, ``q_augmentation``: ``R + w * H^``.
-          Knox & Stone's techniques differ in *where* the sum is used (selection only, the reward, the
-          update target), not in the arithmetic, so they share it under their own names;
+        - ``linear`` (eq. 4.2), ``action_biasing``, ``reward_shaping``: ``R + w * H^``. Knox & Stone's
+          techniques differ in *where* the sum is used (selection only, the reward), not in the
+          arithmetic, so they share it under their own names;
         - ``exponential`` (eq. 5.1): ``R * (1 + sign(H^) * |H^| ** w)``, see :func:`signed_power`. The rule
           assumes R >= 0 (keepaway's hold times, lines): for R < 0 a larger factor makes the product more
           negative, so H^ acts with its sign reversed (a liked action is pushed down). Where

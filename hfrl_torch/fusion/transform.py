@@ -49,9 +49,9 @@ from tensordict.utils import NestedKey
 from torch import Tensor
 from torchrl.data import Composite, TensorSpec, Unbounded
 from torchrl.envs.transforms import Transform
-from torchrl.envs.transforms.utils import _get_reset
 
 from hfrl_torch import keys
+from hfrl_torch.common.resets import reset_flags
 from hfrl_torch.fusion.fusion import Fusion, choosable
 from hfrl_torch.fusion.schedules import WeightSchedule, as_schedule
 from hfrl_torch.fusion.schemes import REWARD_SCHEMES
@@ -286,7 +286,7 @@ class FeedbackFusion(Transform):
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         batch = tensordict_reset.batch_size
-        reset = _get_reset(self.reset_key, tensordict).reshape(batch)
+        reset = reset_flags(tensordict, self.reset_key, batch)
         self._counters(batch, tensordict_reset.device)
         self._finished = self._finished & ~reset.to(self._finished.device)
         if self.agent_key is not None:

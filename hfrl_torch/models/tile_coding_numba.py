@@ -119,15 +119,6 @@ def table_add(weight: np.ndarray, tables: np.ndarray, tiles: np.ndarray, step: n
             w[tiles[r, i]] += s
 
 
-def compiled_tiles(coder: TileCoding, values: torch.Tensor) -> torch.Tensor:
-    """``coder.tiles(values)`` [M, A, N] computed by :func:`tile_indices` (bit for bit the same)."""
-    if values.shape[-1] != coder.num_features:
-        raise ValueError(f"expected {coder.num_features} state variables, got shape {tuple(values.shape)}")
-    x = values.detach().to(torch.float64).reshape(-1, coder.num_features).numpy()
-    out = tile_indices(x, coder.widths.numpy(), coder.tilings, coder.num_actions, coder.size)
-    return torch.from_numpy(out).view(*values.shape[:-1], coder.num_actions, coder.active_tiles)
-
-
 def compiled_values(coder: TileCoding, tables: torch.Tensor, tiles: torch.Tensor) -> torch.Tensor:
     """``coder(tables, tiles)`` for tiles [M, K, N]: the sums [M, K] in the weights' dtype."""
     idx = tiles.to(torch.int64).contiguous().numpy()

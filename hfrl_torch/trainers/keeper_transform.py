@@ -17,9 +17,9 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.data import Binary, Composite, TensorSpec, Unbounded
 from torchrl.envs.transforms import Transform
-from torchrl.envs.transforms.utils import _get_reset
 
 from hfrl_torch import keys
+from hfrl_torch.common.resets import reset_flags
 from hfrl_torch.feedback.channel import FeedbackChannel
 
 __all__ = ["KeeperFeedback"]
@@ -75,7 +75,7 @@ class KeeperFeedback(Transform):
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         batch = tensordict_reset.batch_size
         channel = self._state(batch.numel())
-        reset = _get_reset(keys.RESET, tensordict).reshape(-1).cpu()
+        reset = reset_flags(tensordict, keys.RESET, batch).reshape(-1).cpu()
         started = tensordict_reset.get(keys.EPISODE_CYCLES).reshape(-1).cpu().to(torch.float64)
         self.clock = torch.where(reset, self.clock + started / CYCLES_PER_SECOND, self.clock)
         self.trainer.new_episodes(reset)

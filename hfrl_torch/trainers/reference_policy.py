@@ -17,7 +17,13 @@ import torch
 from tensordict import TensorDictBase
 
 from hfrl_torch import keys
-from hfrl_torch.envs.tetris.engine_numba import SPARE_ROWS, _features, _filled, _place
+from hfrl_torch.envs.tetris.engine_numba import (
+    SPARE_ROWS,
+    best_placement,
+    board_state_features,
+    filled_cells,
+    piece_afterstates,
+)
 from hfrl_torch.envs.tetris.features import DELLACHERIE, DELLACHERIE_WEIGHTS
 from hfrl_torch.envs.tetris.pieces import placement_table
 
@@ -48,9 +54,11 @@ def _evaluate(
     """Per board: every placement's full and board-only value, the best one, and which give its board."""
     nb = rows.shape[0]
     nrows = height + SPARE_ROWS
-    after_rows = np.empty((num_actions.max(), nrows), np.int64)  # every placement's afterstate
-    tmp_h = np.empty(width, np.int64)
-    feat = np.empty(6, np.float64)
+    a_max = num_actions.max()
+    after_rows = np.empty((a_max, nrows), np.int64)  # every placement's afterstate
+    after_h = np.empty((a_max, width), np.int64)
+    after_lines = np.empty(a_max, np.int64)
+    feat = np.empty((a_max, 6), np.float64)
     for b in range(nb):
         out_value[b, :] = 0.0
         out_board_value[b, :] = 0.0
@@ -60,55 +68,41 @@ def _evaluate(
         out_before[b] = 0.0
         if not active[b]:
             continue
-        filled = _filled(rows[b], nrows)
-        _features(rows[b], heights[b], width, height, DELLACHERIE, filled, 0.0, 0, feat)
+        filled = filled_cells(rows[b], nrows)
+        board_state_features(rows[b], heights[b], width, height, DELLACHERIE, filled, feat[0])
         for k in range(2, 6):
-            out_before[b] += weights[k] * feat[k]
-        p = pieces[b]
-        best_v = -np.inf
-        best_over = True
-        for a in range(num_actions[p]):
-            tmp_rows = after_rows[a]
-            lines, land, eroded_cells, over = _place(
-                rows[b],
-                heights[b],
-                tmp_rows,
-                tmp_h,
-                width,
-                height,
-                row_masks[p, a],
-                bottom[p, a],
-                top[p, a],
-                column[p, a],
-                piece_width[p, a],
-                piece_height[p, a],
-            )
-            lh = land + 1 + (piece_height[p, a] - 1) / 2.0
-            _features(
-                tmp_rows,
-                tmp_h,
-                width,
-                height,
-                DELLACHERIE,
-                filled + 4 - lines * width,
-                lh,
-                lines * eroded_cells,
-                feat,
-            )
+            out_before[b] += weights[k] * feat[0, k]
+        n = piece_afterstates(
+            rows[b],
+            heights[b],
+            filled,
+            pieces[b],
+            width,
+            height,
+            DELLACHERIE,
+            num_actions,
+            row_masks,
+            bottom,
+            top,
+            column,
+            piece_width,
+            piece_height,
+            after_rows,
+            after_h,
+            feat,
+            out_terminal[b],
+            after_lines,
+        )
+        for a in range(n):
             board_v = 0.0
             for k in range(2, 6):
-                board_v += weights[k] * feat[k]
-            v = board_v + weights[0] * feat[0] + weights[1] * feat[1]
-            out_value[b, a] = v
+                board_v += weights[k] * feat[a, k]
+            out_value[b, a] = board_v + weights[0] * feat[a, 0] + weights[1] * feat[a, 1]
             out_board_value[b, a] = board_v
-            out_terminal[b, a] = over
-            # the engines' rule: game-ending placements only when every placement ends the game
-            if a == 0 or (best_over and not over) or (over == best_over and v > best_v):
-                best_v = v
-                best_over = over
-                out_best[b] = a
+        # the engines' rule: game-ending placements only when every placement ends the game
+        out_best[b] = best_placement(out_value[b], out_terminal[b], n)
         best = after_rows[out_best[b]]
-        for a in range(num_actions[p]):
+        for a in range(n):
             same = True
             for r in range(nrows):
                 if after_rows[a, r] != best[r]:

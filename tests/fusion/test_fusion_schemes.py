@@ -63,9 +63,8 @@ def test_schemes_list_names_every_scheme_with_its_levels():
         "action_biasing",
         "control_sharing",
         "reward_shaping",
-        "q_augmentation",
     }
-    assert all(s.levels and set(s.levels) <= {"decision", "reward", "target"} for s in SCHEMES)
+    assert all(s.levels and set(s.levels) <= {"decision", "reward"} for s in SCHEMES)
     assert set(DECISION_SCHEMES) == {
         "none",
         "human_only",
@@ -107,7 +106,6 @@ def test_every_config_option_names_its_decision_and_reward_rules():
         ("linear", 0.1, [2.1, 1.3, 3.95, 0.8]),
         ("action_biasing", 0.1, [2.1, 1.3, 3.95, 0.8]),
         ("reward_shaping", 0.1, [2.1, 1.3, 3.95, 0.8]),
-        ("q_augmentation", 0.1, [2.1, 1.3, 3.95, 0.8]),
         # R (1 + H): 2 * 2, 1 * 4, 4 * 0.5, 0 * 9
         ("exponential", 1.0, [4.0, 4.0, 2.0, 0.0]),
         # R (1 + sign(H) |H|^2): 2 * 2, 1 * 10, 4 * 0.75, 0

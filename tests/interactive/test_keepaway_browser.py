@@ -7,7 +7,6 @@ import threading
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 from tensordict import TensorDict
 
 from hfrl_torch import keys
@@ -17,7 +16,7 @@ from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.envs.keepaway import KeepawayConfig
 from hfrl_torch.envs.keepaway.records import KeepawayRecords
 from hfrl_torch.envs.keepaway.simulator import KeepawaySimulator
-from hfrl_torch.experiment.cli import CONF_DIR
+from hfrl_torch.experiment.cli import compose_config
 from hfrl_torch.experiment.config import validate_train
 from hfrl_torch.experiment.learners import keepaway_sarsa
 from hfrl_torch.feedback.channel import FeedbackChannel
@@ -200,8 +199,7 @@ def test_a_taught_loop_learns_from_presses_at_real_time(tmp_path, monkeypatch, r
 
 
 def _cfg(*overrides: str):
-    with initialize_config_dir(str(CONF_DIR), version_base=None):
-        return compose("train", overrides=["domain=keepaway", *overrides])
+    return compose_config("train", "domain=keepaway", *overrides)
 
 
 def test_config_of_the_keepaway_browser_trainer():

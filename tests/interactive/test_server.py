@@ -14,11 +14,10 @@ import urllib.request
 
 import aiohttp
 import pytest
-from hydra import compose, initialize_config_dir
 
 from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.experiment.checks import check_interactive
-from hfrl_torch.experiment.cli import CONF_DIR
+from hfrl_torch.experiment.cli import compose_config
 from hfrl_torch.feedback.log import FeedbackLog, load_feedback_log
 from hfrl_torch.interactive.live import LiveTeaching
 from hfrl_torch.interactive.messages import Finish
@@ -365,8 +364,7 @@ def test_curve_points_reach_the_page_even_when_frames_follow_at_once(served):
 
 def test_connection_limits_from_the_config_are_checked():
     def cfg(*overrides: str):
-        with initialize_config_dir(str(CONF_DIR), version_base=None):
-            return compose("train", overrides=["trainer=interactive", *overrides])
+        return compose_config("train", "trainer=interactive", *overrides)
 
     check_interactive(cfg())
     check_interactive(cfg("trainer.max_teachers=2", "trainer.max_connections=3"))

@@ -67,6 +67,9 @@ class SarsaLambda:
     """
 
     kernels = "torch"  # the reference path, any device (``SarsaLambdaNumba``: the compiled twin)
+    # greedy ties: "random" (the reference's) or "first" (the lowest action, HoldBall, for comparisons with
+    # players that break ties so); :meth:`select` draws the same numbers either way. The torch path only.
+    ties = "random"
 
     def __init__(
         self,
@@ -132,16 +135,14 @@ class SarsaLambda:
         random_noise = torch.rand(m, a, generator=self.generator, device=q.device)
         explore_draw = torch.rand(m, generator=self.generator, device=q.device)
         best = q.masked_fill(~mask, -torch.inf).amax(1, keepdim=True)
-        greedy = torch.where(mask & (q == best), tie_noise, -1.0).argmax(1)
+        if self.ties == "first":
+            greedy = (mask & (q == best)).to(torch.int8).argmax(1)
+        else:
+            greedy = torch.where(mask & (q == best), tie_noise, -1.0).argmax(1)
         if not explore:
             return greedy
         uniform = torch.where(mask, random_noise, -1.0).argmax(1)
         return torch.where(explore_draw < self.epsilon, uniform, greedy)
-
-    @torch.no_grad()
-    def greedy_actions(self, learners: torch.Tensor, obs: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-        """The greedy actions [M] (random ties, no exploration, no learning): for evaluation."""
-        return self.select(self.coder(self.tables[learners], self.coder.tiles(obs)), mask, explore=False)
 
     @torch.no_grad()
     def action_values(self, learners: torch.Tensor, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

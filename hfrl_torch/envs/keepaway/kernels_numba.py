@@ -5,7 +5,7 @@ candidates per player, and the collision passes go through the object pairs in o
 ops they were a third of a cycle's time on CPU, as loops they stop at the first reachable cycle
 (or the first pass without overlap) and keep everything in registers. Each kernel does
 the torch path's float arithmetic in the same order (no fused multiply-adds, sums left to right),
-so both paths give the same bits: ``tests/keepaway/test_keepaway_kernels.py`` checks it, on
+so both paths give the same bits: ``tests/envs/keepaway/test_keepaway_kernels.py`` checks it, on
 single calls and on whole simulated episodes. The kernels take float32 arrays (the simulator's
 dtype); a float64 simulator runs the torch path.
 """

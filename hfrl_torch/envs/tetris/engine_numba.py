@@ -8,7 +8,11 @@ still above row H afterwards (optionally also when the next piece cannot spawn).
 
 The kernels work over whole batches: afterstate features of every placement of
 every board, one placement per board, and whole games played by linear policies
-(the cross-entropy method's inner loop) with ``prange`` over games.
+(the cross-entropy method's inner loop) with ``prange`` over games. They, the compiled
+fused games (``fusion.compiled``) and the reference trainer's evaluation
+(``trainers.reference_policy``) all place a piece through :func:`piece_afterstates` (every
+placement of one piece on one board: afterstates, features, game ends, lines) and choose
+through :func:`best_placement`.
 """
 
 from __future__ import annotations
@@ -103,7 +107,7 @@ def _place(
 
 
 @numba.njit(cache=True)
-def _spawn_blocked(rows: np.ndarray, height: int, width: int, spawn_masks: np.ndarray, piece: int) -> bool:
+def spawn_blocked(rows: np.ndarray, height: int, width: int, spawn_masks: np.ndarray, piece: int) -> bool:
     """True if the piece in its spawn orientation at the top centre overlaps the stack."""
     ph = 0
     for k in range(4):
@@ -224,11 +228,91 @@ def _features(
 
 
 @numba.njit(cache=True)
-def _filled(rows: np.ndarray, nrows: int) -> int:
+def filled_cells(rows: np.ndarray, nrows: int) -> int:
+    """Filled cells of a board (``nrows`` row bitmasks)."""
     n = 0
     for r in range(nrows):
         n += _popcount(rows[r])
     return n
+
+
+@numba.njit(cache=True)
+def board_state_features(
+    rows: np.ndarray, heights: np.ndarray, width: int, height: int, fid: int, filled: int, out: np.ndarray
+) -> None:
+    """Feature set ``fid`` of one board itself (``filled`` cells; landing height and eroded cells are 0)."""
+    _features(rows, heights, width, height, fid, filled, 0.0, 0, out)
+
+
+@numba.njit(cache=True, inline="always")
+def piece_afterstates(
+    rows: np.ndarray,
+    heights: np.ndarray,
+    filled: int,
+    piece: int,
+    width: int,
+    height: int,
+    fid: int,
+    num_actions: np.ndarray,
+    row_masks: np.ndarray,
+    bottom: np.ndarray,
+    top: np.ndarray,
+    column: np.ndarray,
+    piece_width: np.ndarray,
+    piece_height: np.ndarray,
+    out_rows: np.ndarray,
+    out_heights: np.ndarray,
+    out_features: np.ndarray,
+    out_over: np.ndarray,
+    out_lines: np.ndarray,
+) -> int:
+    """Every placement of ``piece`` on one board (``rows``, ``heights``, ``filled`` cells): returns the
+    number of placements n and writes, for a < n, placement a's afterstate (``out_rows[a]``,
+    ``out_heights[a]``), its feature set ``fid`` (``out_features[a]``), whether it ends the game
+    (``out_over[a]``) and the lines it clears (``out_lines[a]``). The tables are the placement table's."""
+    p = piece
+    n = num_actions[p]
+    for a in range(n):
+        lines, land, eroded_cells, over = _place(
+            rows,
+            heights,
+            out_rows[a],
+            out_heights[a],
+            width,
+            height,
+            row_masks[p, a],
+            bottom[p, a],
+            top[p, a],
+            column[p, a],
+            piece_width[p, a],
+            piece_height[p, a],
+        )
+        lh = land + 1 + (piece_height[p, a] - 1) / 2.0
+        _features(
+            out_rows[a],
+            out_heights[a],
+            width,
+            height,
+            fid,
+            filled + 4 - lines * width,
+            lh,
+            lines * eroded_cells,
+            out_features[a],
+        )
+        out_over[a] = over
+        out_lines[a] = lines
+    return n
+
+
+@numba.njit(cache=True)
+def best_placement(values: np.ndarray, over: np.ndarray, n: int) -> int:
+    """The engines' choice among placements 0..n-1: the highest value, the first on ties, and a
+    game-ending placement only when every placement ends the game (then the best of them)."""
+    best = 0
+    for a in range(1, n):
+        if (over[best] and not over[a]) or (over[a] == over[best] and values[a] > values[best]):
+            best = a
+    return best
 
 
 @numba.njit(cache=True, parallel=True)
@@ -255,47 +339,38 @@ def afterstates_batch(
     """Features of every placement's afterstate for a batch of boards ([B, A, F] etc.)."""
     nb = rows.shape[0]
     nrows = height + SPARE_ROWS
+    a_max = out_mask.shape[1]
     for b in prange(nb):
-        tmp_rows = np.empty(nrows, np.int64)
-        tmp_h = np.empty(width, np.int64)
+        after_rows = np.empty((a_max, nrows), np.int64)
+        after_h = np.empty((a_max, width), np.int64)
         out_features[b, :, :] = 0.0
         out_mask[b, :] = False
         out_terminal[b, :] = False
         out_lines[b, :] = 0
         if not alive[b]:
             continue
-        p = pieces[b]
-        filled = _filled(rows[b], nrows)
-        for a in range(num_actions[p]):
-            lines, land, eroded_cells, over = _place(
-                rows[b],
-                heights[b],
-                tmp_rows,
-                tmp_h,
-                width,
-                height,
-                row_masks[p, a],
-                bottom[p, a],
-                top[p, a],
-                column[p, a],
-                piece_width[p, a],
-                piece_height[p, a],
-            )
-            lh = land + 1 + (piece_height[p, a] - 1) / 2.0
-            _features(
-                tmp_rows,
-                tmp_h,
-                width,
-                height,
-                fid,
-                filled + 4 - lines * width,
-                lh,
-                lines * eroded_cells,
-                out_features[b, a],
-            )
-            out_mask[b, a] = True
-            out_terminal[b, a] = over
-            out_lines[b, a] = lines
+        n = piece_afterstates(
+            rows[b],
+            heights[b],
+            filled_cells(rows[b], nrows),
+            pieces[b],
+            width,
+            height,
+            fid,
+            num_actions,
+            row_masks,
+            bottom,
+            top,
+            column,
+            piece_width,
+            piece_height,
+            after_rows,
+            after_h,
+            out_features[b],
+            out_terminal[b],
+            out_lines[b],
+        )
+        out_mask[b, :n] = True
 
 
 @numba.njit(cache=True)
@@ -305,7 +380,7 @@ def board_features(
     """Features of the boards themselves (no placement: landing height and eroded cells are 0)."""
     nrows = height + SPARE_ROWS
     for b in range(rows.shape[0]):
-        _features(rows[b], heights[b], width, height, fid, _filled(rows[b], nrows), 0.0, 0, out[b])
+        board_state_features(rows[b], heights[b], width, height, fid, filled_cells(rows[b], nrows), out[b])
 
 
 @numba.njit(cache=True)
@@ -360,7 +435,7 @@ def step_batch(
         out_lines[b] = lines
         index[b] += 1
         pieces[b] = piece_at(keys[b], index[b], bag)
-        if over or (spawn_topout and _spawn_blocked(tmp_rows, height, width, spawn_masks, pieces[b])):
+        if over or (spawn_topout and spawn_blocked(tmp_rows, height, width, spawn_masks, pieces[b])):
             alive[b] = False
 
 
@@ -397,14 +472,18 @@ def play_games(
     n_games = seeds.shape[0]
     nrows = height + SPARE_ROWS
     nf = weights.shape[1]
+    a_max = 0
+    for q in range(num_actions.shape[0]):
+        a_max = max(a_max, num_actions[q])
     for g in prange(n_games):
         rows = np.zeros(nrows, np.int64)
         hts = np.zeros(width, np.int64)
-        best_rows = np.empty(nrows, np.int64)
-        best_h = np.empty(width, np.int64)
-        tmp_rows = np.empty(nrows, np.int64)
-        tmp_h = np.empty(width, np.int64)
-        feat = np.empty(nf, np.float64)
+        after_rows = np.empty((a_max, nrows), np.int64)
+        after_h = np.empty((a_max, width), np.int64)
+        feat = np.empty((a_max, nf), np.float64)
+        after_over = np.empty(a_max, np.bool_)
+        after_lines = np.empty(a_max, np.int64)
+        values = np.empty(a_max, np.float64)
         key = game_key(seeds[g])
         pkey = game_key(policy_seeds[g])
         i = 0
@@ -417,18 +496,14 @@ def play_games(
                 capped = True
                 break
             na = num_actions[p]
-            best_val = -np.inf
-            best_lines = 0
-            best_over = True
-            pick = uniform_index(pkey, i, na) if policy == POLICY_RANDOM else -1
-            for a in range(na):
-                if policy == POLICY_RANDOM and a != pick:
-                    continue
-                lines, land, eroded_cells, over = _place(
+            if policy == POLICY_RANDOM:
+                a = uniform_index(pkey, i, na)
+                best = 0
+                lines, _, _, over = _place(
                     rows,
                     hts,
-                    tmp_rows,
-                    tmp_h,
+                    after_rows[0],
+                    after_h[0],
                     width,
                     height,
                     row_masks[p, a],
@@ -438,46 +513,49 @@ def play_games(
                     piece_width[p, a],
                     piece_height[p, a],
                 )
-                if policy == POLICY_LINEAR:
-                    lh = land + 1 + (piece_height[p, a] - 1) / 2.0
-                    _features(
-                        tmp_rows,
-                        tmp_h,
-                        width,
-                        height,
-                        fid,
-                        filled + 4 - lines * width,
-                        lh,
-                        lines * eroded_cells,
-                        feat,
-                    )
+                after_lines[0] = lines
+                after_over[0] = over
+            else:
+                piece_afterstates(
+                    rows,
+                    hts,
+                    filled,
+                    p,
+                    width,
+                    height,
+                    fid,
+                    num_actions,
+                    row_masks,
+                    bottom,
+                    top,
+                    column,
+                    piece_width,
+                    piece_height,
+                    after_rows,
+                    after_h,
+                    feat,
+                    after_over,
+                    after_lines,
+                )
+                for a in range(na):
                     v = 0.0
                     for k in range(nf):
-                        v += weights[g, k] * feat[k]
-                    # game-ending placements only when every placement ends the game
-                    take = a == 0 or (best_over and not over) or (over == best_over and v > best_val)
-                else:
-                    v = 0.0
-                    take = True
-                if take:
-                    best_val = v
-                    best_lines = lines
-                    best_over = over
-                    for r in range(nrows):
-                        best_rows[r] = tmp_rows[r]
-                    for c in range(width):
-                        best_h[c] = tmp_h[c]
+                        v += weights[g, k] * feat[a, k]
+                    values[a] = v
+                best = best_placement(values, after_over, na)
+            best_lines = after_lines[best]
+            best_over = after_over[best]
             for r in range(nrows):
-                rows[r] = best_rows[r]
+                rows[r] = after_rows[best, r]
             for c in range(width):
-                hts[c] = best_h[c]
+                hts[c] = after_h[best, c]
             filled += 4 - best_lines * width
             lines_total += best_lines
             i += 1
             if best_over:
                 break
             p = piece_at(key, i, bag)
-            if spawn_topout and _spawn_blocked(rows, height, width, spawn_masks, p):
+            if spawn_topout and spawn_blocked(rows, height, width, spawn_masks, p):
                 break
         out_lines[g] = lines_total
         out_pieces[g] = i

@@ -8,8 +8,6 @@ import math
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
-from omegaconf import DictConfig
 
 from hfrl_torch.agents.pg import PolicyGradient, natural_direction, score_and_fisher
 from hfrl_torch.common.checkpoint import load_checkpoint
@@ -17,16 +15,11 @@ from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.envs.tetris import TetrisRules
 from hfrl_torch.envs.tetris.engine_numba import play
 from hfrl_torch.envs.tetris.features import BT
-from hfrl_torch.experiment.cli import CONF_DIR
+from hfrl_torch.experiment.cli import compose_config
 from hfrl_torch.experiment.config import validate_train
 from hfrl_torch.experiment.tetris_evaluation import evaluate_tetris
 
 pytestmark = pytest.mark.usefixtures("one_thread")
-
-
-def _cfg(name: str, *overrides: str) -> DictConfig:
-    with initialize_config_dir(str(CONF_DIR), version_base=None):
-        return compose(name, overrides=list(overrides))
 
 
 def _f(rows) -> torch.Tensor:
@@ -176,7 +169,7 @@ def test_train_pg_writes_metrics_and_a_checkpoint_that_evaluate_plays(tmp_path, 
     ckpt = load_checkpoint(tmp_path, domain="tetris", agent="pg")
     assert ckpt["policy"]["kind"] == "linear" and ckpt["policy"]["weights"].shape == (13,)
     assert torch.equal(ckpt["policy"]["weights"], ckpt["state"]["learner"]["weight"][0])
-    res = evaluate_tetris(_cfg("evaluate", f"policy={tmp_path}", "games=3"), progress=False)
+    res = evaluate_tetris(compose_config("evaluate", f"policy={tmp_path}", "games=3"), progress=False)
     assert res["games"] == 3 and res["board"] == "6x8" and res["max_pieces"] == 50
 
 
@@ -204,7 +197,7 @@ def test_bad_values_fail_with_one_line(override, message):
         else ["agent=pg", *override.split()]
     )
     with pytest.raises(ConfigError) as info:
-        validate_train(_cfg("train", *args))
+        validate_train(compose_config("train", *args))
     assert message in str(info.value) and "\n" not in str(info.value)
 
 

@@ -12,7 +12,7 @@ import torch
 
 from hfrl_torch.common.checkpoint import checksum
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 TINY = [
     "domain.width=6",
     "domain.height=6",

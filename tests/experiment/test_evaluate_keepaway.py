@@ -10,13 +10,12 @@ from pathlib import Path
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 
 from hfrl_torch.agents.sarsa.policy import load_keeper_policy
 from hfrl_torch.common.checkpoint import load_checkpoint, save_checkpoint
 from hfrl_torch.common.errors import CheckpointError, ConfigError
 from hfrl_torch.envs.keepaway import play_benchmark_policy, play_keeper_policy
-from hfrl_torch.experiment.cli import CONF_DIR
+from hfrl_torch.experiment.cli import compose_config
 from hfrl_torch.experiment.config import validate_train
 from hfrl_torch.experiment.keepaway_evaluation import evaluate_keepaway, format_keepaway_summary
 from hfrl_torch.experiment.learners.keepaway_sarsa import SarsaKeepers
@@ -25,7 +24,7 @@ from hfrl_torch.models.tile_coding import TileCoding
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 SMALL = ["agent.learners=2", "agent.table_bits=12", "agent.hours=0.003"]
 KEYS = (
     "domain",
@@ -48,13 +47,8 @@ KEYS = (
 OUTCOME = ("mean_s", "sd_s", "median_s", "ci95_low", "ci95_high", "taken_share", "out_share")
 
 
-def _cfg(name: str, *overrides: str):
-    with initialize_config_dir(str(CONF_DIR), version_base=None):
-        return compose(name, overrides=list(overrides))
-
-
 def _train(run_dir: Path, *overrides: str) -> Path:
-    cfg = _cfg("train", "domain=keepaway", "logger=none", *overrides, *SMALL)
+    cfg = compose_config("train", "domain=keepaway", "logger=none", *overrides, *SMALL)
     validate_train(cfg)
     learn(SarsaKeepers(cfg, run_dir), RunFiles(run_dir, cfg))
     return run_dir
@@ -71,7 +65,7 @@ def fused(tmp_path_factory) -> Path:
 
 
 def _evaluate(policy: Path | str, *overrides: str) -> dict:
-    cfg = _cfg("evaluate", "domain=keepaway", f"policy={policy}", *overrides)
+    cfg = compose_config("evaluate", "domain=keepaway", f"policy={policy}", *overrides)
     return evaluate_keepaway(cfg, progress=False)
 
 

@@ -12,14 +12,14 @@ from pathlib import Path
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 
 from hfrl_torch.common.checkpoint import load_checkpoint
+from hfrl_torch.experiment.cli import compose_config
 from hfrl_torch.experiment.learners.tetris_cem import CEMLearner
 from hfrl_torch.experiment.run import RunFiles, learn
 from hfrl_torch.feedback.log import load_feedback_log, read_feedback_log
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 TINY = [
     "domain.width=6",
     "domain.height=8",
@@ -32,8 +32,7 @@ TINY = [
 
 
 def _cfg(*overrides: str):
-    with initialize_config_dir(str(ROOT / "conf"), version_base=None):
-        return compose("train", overrides=[*TINY, *overrides])
+    return compose_config("train", *TINY, *overrides)
 
 
 def train_cem_hf(cfg, run_dir: Path, checkpoint: dict | None) -> dict:

@@ -12,7 +12,7 @@ import pytest
 
 from hfrl_torch.experiment.aggregate import find_runs, group_runs, permutation_p, report
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _run(root: Path, name: str, config: str, curve: list[float]) -> None:

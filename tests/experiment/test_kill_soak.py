@@ -1,4 +1,7 @@
-"""Soak test of crash safety: random SIGKILLs and resumes, each trial compared with an uninterrupted run.
+"""Crash safety: random SIGKILLs and resumes, each trial compared with an uninterrupted run.
+
+The test below runs one trial of the cheapest config (a few seconds); the module run as a script is the
+full soak, as described here.
 
 Three configs, each a tiny run of a few seconds: CE + linear fusion taught by the simulated oracle, TAMER
 taught by the simulated oracle, and keepaway Sarsa with linear fusion (the simulated keepaway oracle). For
@@ -21,7 +24,7 @@ whether the final checkpoint's state, policy and curve equal the reference's (it
 out). The TAMER loop checkpoints every ``SAVE_EVERY_S`` wall seconds (10 s); the soak sets 0.3 s, so that
 kills land between checkpoints. Prints one JSON object::
 
-    nice -n 10 python benchmarks/kill_soak.py --trials 34 --seed 0
+    nice -n 10 python tests/experiment/test_kill_soak.py --trials 34 --seed 0
 """
 
 from __future__ import annotations
@@ -43,20 +46,14 @@ from typing import Any
 
 import numba
 import torch
+from omegaconf import DictConfig
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-
-from hydra import compose, initialize_config_dir  # noqa: E402
-from omegaconf import DictConfig  # noqa: E402
-
-from hfrl_torch.common.checkpoint import load_checkpoint  # noqa: E402
-from hfrl_torch.experiment import cli  # noqa: E402
-from hfrl_torch.experiment.config import validate_train  # noqa: E402
-from hfrl_torch.experiment.learners import tetris_games  # noqa: E402
-from hfrl_torch.experiment.registry import learner_for  # noqa: E402
-from hfrl_torch.experiment.run import RunFiles, learn  # noqa: E402
-from hfrl_torch.feedback.log import read_feedback_log  # noqa: E402
+from hfrl_torch.common.checkpoint import load_checkpoint
+from hfrl_torch.experiment.cli import compose_train
+from hfrl_torch.experiment.learners import tetris_games
+from hfrl_torch.experiment.registry import learner_for
+from hfrl_torch.experiment.run import RunFiles, learn
+from hfrl_torch.feedback.log import read_feedback_log
 
 TETRIS = ["domain.width=6", "domain.height=8"]
 CONFIGS = {
@@ -86,13 +83,6 @@ CONFIGS = {
 SOAK_SAVE_EVERY_S = 0.3
 WALL_KEYS = ("time/", "field_cycles_per_s", "wall_s")
 RUN = "run"  # every run directory's name: the feedback sessions are named after it
-
-
-def compose_train(overrides: list[str]) -> DictConfig:
-    with initialize_config_dir(str(cli.CONF_DIR), version_base=None):
-        cfg = compose("train", overrides=["logger.backend=none", *overrides])
-    validate_train(cfg)
-    return cfg
 
 
 def _train(cfg: DictConfig, run_dir: Path) -> None:
@@ -268,7 +258,7 @@ def main() -> None:
     out: dict[str, Any] = {"command": " ".join(sys.argv), "seed": args.seed, "configs": {}}
     started = time.perf_counter()
     for name in args.configs.split(","):
-        cfg = compose_train([*CONFIGS[name], f"seed={args.seed + 7}"])
+        cfg = compose_train("logger.backend=none", *CONFIGS[name], f"seed={args.seed + 7}")
         walls = []
         for repeat in ("warm-up", "reference"):
             reference = root / f"{name}-{repeat}" / RUN
@@ -338,6 +328,19 @@ def main() -> None:
     if out["run_dirs"] is None:
         shutil.rmtree(root, ignore_errors=True)
     print(json.dumps(out, indent=1))
+
+
+def test_a_killed_and_resumed_run_ends_as_the_uninterrupted_one(tmp_path):
+    """One trial of the cheapest config, shortened: killed once between its first checkpoint and its end,
+    resumed, and compared with the uninterrupted run."""
+    cfg = compose_train("logger.backend=none", *CONFIGS["cem+fusion"], "agent.iterations=4", "seed=7")
+    reference = tmp_path / "reference" / RUN
+    _, code, wall, first = wait(spawn(cfg, reference), None, reference / "checkpoints" / "last.pt")
+    assert code == 0, (tmp_path / "errors.txt").read_text()
+    row = trial(cfg, tmp_path / "trial" / RUN, reference, (min(first, wall), wall), 1, random.Random(0))
+    assert row["exit"] == 0 and row["kills"] == 1 and row["differs_at"] == []
+    assert row["metrics_identical"] and row["events_in_order"]
+    assert row["events_lost"] == row["events_duplicated"] == row["events_extra"] == 0
 
 
 if __name__ == "__main__":

@@ -3,25 +3,18 @@
 from __future__ import annotations
 
 import pytest
-from hydra import compose, initialize_config_dir
-from omegaconf import DictConfig
 
 from hfrl_torch.common.errors import ConfigError, UserError
 from hfrl_torch.experiment.checks import check_kernels
-from hfrl_torch.experiment.cli import CONF_DIR, check_group_choices
+from hfrl_torch.experiment.cli import check_group_choices, compose_config
 from hfrl_torch.experiment.config import validate_evaluate, validate_train
 from hfrl_torch.experiment.factories import make_keepaway_config, make_trainer
 from hfrl_torch.experiment.keepaway_evaluation import evaluate_keepaway, format_keepaway_summary
 from hfrl_torch.experiment.tetris_evaluation import evaluate_tetris
 
 
-def _cfg(name: str, *overrides: str) -> DictConfig:
-    with initialize_config_dir(str(CONF_DIR), version_base=None):
-        return compose(name, overrides=list(overrides))
-
-
 def test_defaults_are_valid():
-    validate_train(_cfg("train"))
+    validate_train(compose_config("train"))
 
 
 @pytest.mark.parametrize(
@@ -120,7 +113,7 @@ def test_defaults_are_valid():
 )
 def test_bad_values(override, message):
     with pytest.raises(ConfigError) as info:
-        validate_train(_cfg("train", *override.split()))
+        validate_train(compose_config("train", *override.split()))
     assert message in str(info.value) and "\n" not in str(info.value)
 
 
@@ -137,19 +130,19 @@ def test_unknown_group_option_names_the_allowed_ones(capsys):
 
 def test_evaluate_rejects_bad_values_and_plays_random():
     with pytest.raises(ConfigError, match="games=0 is invalid"):
-        validate_evaluate(_cfg("evaluate", "games=0"))
+        validate_evaluate(compose_config("evaluate", "games=0"))
     with pytest.raises(UserError, match="neither a checkpoint nor a run directory"):
-        evaluate_tetris(_cfg("evaluate", "policy=/no/such/dir"), progress=False)
-    res = evaluate_tetris(_cfg("evaluate", "policy=random", "games=20"), progress=False)
+        evaluate_tetris(compose_config("evaluate", "policy=/no/such/dir"), progress=False)
+    res = evaluate_tetris(compose_config("evaluate", "policy=random", "games=20"), progress=False)
     assert res["mean"] < 1.0 and res["games"] == 20 and res["policy"] == "random"
 
 
 def test_keepaway_is_learned_by_sarsa_only():
     with pytest.raises(ConfigError, match=r"domain=keepaway agent=sarsa"):
-        validate_train(_cfg("train", "domain=keepaway", "agent=cem"))
+        validate_train(compose_config("train", "domain=keepaway", "agent=cem"))
     with pytest.raises(ConfigError, match=r"domain=tetris agent=sarsa"):
-        validate_train(_cfg("train", "agent=sarsa"))
-    validate_train(_cfg("train", "domain=keepaway"))  # the domain brings its learner: agent=sarsa
+        validate_train(compose_config("train", "agent=sarsa"))
+    validate_train(compose_config("train", "domain=keepaway"))  # the domain brings its learner: agent=sarsa
 
 
 @pytest.mark.parametrize(
@@ -166,7 +159,7 @@ def test_keepaway_is_learned_by_sarsa_only():
 )
 def test_keepaway_evaluate_bad_values(override, message):
     with pytest.raises(ConfigError) as info:
-        cfg = _cfg("evaluate", "domain=keepaway", override)
+        cfg = compose_config("evaluate", "domain=keepaway", override)
         validate_evaluate(cfg)
         evaluate_keepaway(cfg, progress=False)
     assert message in str(info.value)
@@ -174,7 +167,9 @@ def test_keepaway_evaluate_bad_values(override, message):
 
 def test_keepaway_evaluate_reports_the_issue_fields(tmp_path):
     gif = tmp_path / "episode.gif"
-    cfg = _cfg("evaluate", "domain=keepaway", "policy=hold", "episodes=16", "domain.batch=16", f"gif={gif}")
+    cfg = compose_config(
+        "evaluate", "domain=keepaway", "policy=hold", "episodes=16", "domain.batch=16", f"gif={gif}"
+    )
     res = evaluate_keepaway(cfg, progress=False)
     for key in ("domain", "policy", "preset", "keepers", "takers", "episodes", "mean_s", "sd_s", "median_s"):
         assert key in res
@@ -189,7 +184,7 @@ def test_keepaway_evaluate_reports_the_issue_fields(tmp_path):
 def test_keepaway_evaluate_cuts_episodes_at_max_episode_s():
     """An episode still running at max_episode_s ends there, counted at that length and reported as
     cut, so a policy that never loses the ball cannot stall evaluate.py."""
-    cfg = _cfg(
+    cfg = compose_config(
         "evaluate", "domain=keepaway", "policy=hand", "episodes=16", "domain.batch=16", "max_episode_s=1.5"
     )
     res = evaluate_keepaway(cfg, progress=False)
@@ -199,7 +194,7 @@ def test_keepaway_evaluate_cuts_episodes_at_max_episode_s():
 
 
 def test_keepaway_preset_given_as_a_number_on_the_command_line_is_accepted():
-    cfg = _cfg("evaluate", "domain=keepaway", "domain.preset=2005")
+    cfg = compose_config("evaluate", "domain=keepaway", "domain.preset=2005")
     validate_evaluate(cfg)
     assert make_keepaway_config(cfg).preset == "2005"
 
@@ -228,7 +223,7 @@ def test_keepaway_preset_given_as_a_number_on_the_command_line_is_accepted():
     ],
 )
 def test_tamer_and_trainer_bad_values(overrides, message):
-    cfg = _cfg("train", "agent=tamer", *overrides)
+    cfg = compose_config("train", "agent=tamer", *overrides)
     with pytest.raises(ConfigError) as info:
         validate_train(cfg)
     assert message in str(info.value)
@@ -250,7 +245,7 @@ def test_adaptive_weight_is_each_learners_own_estimator():
         (["fusion=linear", "fusion.weight=bandit"], "bandit", BanditWeight),
     ):
         weight = [] if any(o.startswith("fusion.weight") for o in overrides) else ["fusion.weight=adaptive"]
-        cfg = _cfg("train", *overrides, *weight)
+        cfg = compose_config("train", *overrides, *weight)
         validate_train(cfg)
         evidence = learner_for(cfg.agent.name, cfg.domain.name).weight_evidence
         assert weight_kind(cfg, evidence) == kind
@@ -260,33 +255,33 @@ def test_adaptive_weight_is_each_learners_own_estimator():
 def test_trainer_factory_builds_the_simulated_trainers():
     from hfrl_torch.trainers import HumanLikeTiming, OracleTrainer, ValueProxyTrainer
 
-    oracle = make_trainer(_cfg("train", "agent=tamer", "trainer=oracle"), None)
+    oracle = make_trainer(compose_config("train", "agent=tamer", "trainer=oracle"), None)
     assert isinstance(oracle, HumanLikeTiming) and isinstance(oracle.trainer, OracleTrainer)
     assert oracle.trainer.frequency == 0.5 and oracle.trainer.consistency == 0.9
     plain = make_trainer(
-        _cfg("train", "agent=tamer", "trainer=value_proxy", "trainer.timing.enabled=false"), None
+        compose_config("train", "agent=tamer", "trainer=value_proxy", "trainer.timing.enabled=false"), None
     )
     assert isinstance(plain, ValueProxyTrainer)
-    assert make_trainer(_cfg("train"), None) is None
+    assert make_trainer(compose_config("train"), None) is None
 
 
 def test_numba_kernels_need_the_cpu():
-    cfg = _cfg("train", "domain=keepaway", "agent=sarsa", "domain.kernels=numba", "device=cuda")
+    cfg = compose_config("train", "domain=keepaway", "agent=sarsa", "domain.kernels=numba", "device=cuda")
     with pytest.raises(ConfigError) as info:
         check_kernels(cfg)
     assert str(info.value) == (
         "domain.kernels='numba' runs on the CPU only, not device=cuda; use domain.kernels=auto or torch"
     )
-    assert check_kernels(_cfg("train", "domain=keepaway", "agent=sarsa", "device=cuda")) == "torch"
+    assert check_kernels(compose_config("train", "domain=keepaway", "agent=sarsa", "device=cuda")) == "torch"
 
 
 def test_keepaway_kernels_follow_the_device_and_the_trainer():
     """Whole cycles compiled on the CPU, per-cycle kernels for the browser's live view, torch on a GPU;
     whole cycles cannot show the browser trainer every cycle."""
-    assert check_kernels(_cfg("train", "domain=keepaway")) == "cycle"
-    assert check_kernels(_cfg("train", "domain=keepaway", "trainer=interactive")) == "numba"
-    assert check_kernels(_cfg("evaluate", "domain=keepaway")) == "cycle"
-    cfg = _cfg("train", "domain=keepaway", "trainer=interactive", "domain.kernels=cycle")
+    assert check_kernels(compose_config("train", "domain=keepaway")) == "cycle"
+    assert check_kernels(compose_config("train", "domain=keepaway", "trainer=interactive")) == "numba"
+    assert check_kernels(compose_config("evaluate", "domain=keepaway")) == "cycle"
+    cfg = compose_config("train", "domain=keepaway", "trainer=interactive", "domain.kernels=cycle")
     with pytest.raises(ConfigError, match=r"domain\.kernels='cycle' runs many cycles per call"):
         check_kernels(cfg)
 

@@ -8,7 +8,6 @@ import json
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 
 from hfrl_torch.agents.sarsa import SarsaLambda, SarsaLambdaNumba, trace_capacity
 from hfrl_torch.agents.sarsa import sarsa_keepers as make_sarsa_keepers
@@ -16,7 +15,7 @@ from hfrl_torch.common.checkpoint import load_checkpoint
 from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.envs.keepaway import KeepawayConfig, KeepawayEnv, play_benchmark_policy
 from hfrl_torch.experiment.checks import check_sarsa
-from hfrl_torch.experiment.cli import CONF_DIR
+from hfrl_torch.experiment.cli import compose_config
 from hfrl_torch.models.tile_coding import TileCoding, keepaway_tile_widths
 
 torch.set_num_threads(1)
@@ -288,8 +287,7 @@ def test_short_learning_run_beats_the_random_policy(tmp_path, run_learner):
 
 
 def _cfg(*overrides: str):
-    with initialize_config_dir(str(CONF_DIR), version_base=None):
-        return compose("train", overrides=["domain=keepaway", "agent=sarsa", "logger=none", *overrides])
+    return compose_config("train", "domain=keepaway", "agent=sarsa", "logger=none", *overrides)
 
 
 def _train(run_dir, run_learner, *overrides: str, checkpoint=None):

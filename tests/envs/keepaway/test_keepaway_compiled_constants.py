@@ -49,7 +49,7 @@ def block_points(tmp_path: Path, mark_distance: float | None) -> dict[str, list[
     """BlockPass's point on both paths in a fresh process, with ``skills.MARK_DISTANCE`` patched."""
     cache = tmp_path / f"numba-{mark_distance}"
     cache.mkdir()
-    env = {**os.environ, "NUMBA_CACHE_DIR": str(cache), "PYTHONPATH": str(Path(__file__).parents[2])}
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(cache), "PYTHONPATH": str(Path(__file__).parents[3])}
     args = [] if mark_distance is None else [str(mark_distance)]
     out = subprocess.run(
         [sys.executable, "-c", SCRIPT, *args], env=env, capture_output=True, text=True, timeout=300
