@@ -150,7 +150,9 @@ class TetrisPage:
         self.clock = clock
         self.games = 0
         self._round_start: float | None = None
-        self._round_s: list[float] = []
+        # the last rounds' wall times, apart for rounds the person watched and rounds that practised alone:
+        # a watched round lasts a paced game, one alone a moment, so the time left depends on which come
+        self._round_s: dict[bool, list[float]] = {True: [], False: []}
         session.set_live(False)  # nothing to judge before the first game
 
     def start_game(self, round_index: int) -> None:
@@ -194,13 +196,16 @@ class TetrisPage:
         self.session.add_point(round_index + 1, lines, 1.0 if taught else 0.0)
         now = self.clock()
         if self._round_start is not None:
-            self._round_s = [*self._round_s[-4:], now - self._round_start]
+            self._round_s[taught] = [*self._round_s[taught][-4:], now - self._round_start]
         self._round_start = now
         self._progress(round_index + 1)
 
     def _progress(self, done: int) -> None:
+        """What is left, and how long it takes at the pace of the rounds to come: watched ones while the
+        person teaches, practice alone while they are away (None: no such round measured yet)."""
         left = max(self.rounds - done, 0)
-        per_round = sum(self._round_s) / len(self._round_s) if self._round_s else None
+        recent = self._round_s[self.session.teaching()]
+        per_round = sum(recent) / len(recent) if recent else None
         self.session.set_progress(
             unit="rounds",
             done=done,

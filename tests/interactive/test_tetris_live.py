@@ -3,6 +3,7 @@ the placement on screen the reaction allowance before them and credited to it, a
 
 from __future__ import annotations
 
+import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -17,7 +18,7 @@ from hfrl_torch.feedback.credit import PreviousStep, credit_weights
 from hfrl_torch.feedback.events import FeedbackEvent
 from hfrl_torch.feedback.log import FeedbackLog, load_feedback_log
 from hfrl_torch.interactive.live import LiveTeaching
-from hfrl_torch.interactive.messages import Feedback
+from hfrl_torch.interactive.messages import Feedback, Presence
 from hfrl_torch.interactive.server import TeachingServer
 from hfrl_torch.interactive.session import TeachingSession
 from hfrl_torch.interactive.tetris_live import BrowserTetrisTrainer, TetrisPage, landing, tetris_frame
@@ -113,7 +114,30 @@ def test_the_page_is_told_rounds_games_and_what_is_left():
     page.practising(1)
     page.point(1, 5.0, taught=False)
     assert session.curve == [[1.0, 3.5, 1.0], [2.0, 5.0, 0.0]]
-    assert session.progress == {"unit": "rounds", "done": 2, "total": 4, "left": 2, "left_s": 2 * 4.0}
+    # no page is open: the rounds to come practise alone, at the 2 s the one alone took
+    assert session.progress == {"unit": "rounds", "done": 2, "total": 4, "left": 2, "left_s": 2 * 2.0}
+
+
+def test_the_time_left_follows_whether_the_person_teaches():
+    """Once said: "49 of 50 practice rounds left, about 33 min 22 s" while the person was away and the
+    rounds ran alone in 40 s. A watched round lasts a paced game, one alone a moment."""
+    _, session = _fake()
+    wall = [0.0]
+    page = TetrisPage(session, rounds=10, clock=lambda: wall[0])
+    session.connect()
+    page.start_game(0)
+    wall[0] = 40.0
+    page.point(0, 2.0, taught=True)  # the person watched a 40 s game
+    assert session.progress["left_s"] == 9 * 40.0
+    session.apply(Presence(False))  # "I'm away"
+    page.practising(1)
+    assert session.progress["left_s"] is None  # no round alone measured yet: no guess
+    wall[0] = 40.8
+    page.point(1, 2.0, taught=False)
+    assert session.progress["left_s"] == pytest.approx(8 * 0.8)
+    session.apply(Presence(True))
+    page.start_game(2)
+    assert session.progress["left_s"] == 8 * 40.0
 
 
 def test_a_taught_ce_round_files_each_press_under_the_placement_shown_before_it(
