@@ -1,8 +1,5 @@
 """Crash safety: random SIGKILLs and resumes, each trial compared with an uninterrupted run.
 
-The test below runs one trial of the cheapest config (a few seconds); the module run as a script is the
-full soak, as described here.
-
 Three configs, each a tiny run of a few seconds: CE + linear fusion taught by the simulated oracle, TAMER
 taught by the simulated oracle, and keepaway Sarsa with linear fusion (the simulated keepaway oracle). For
 each, an uninterrupted reference run (run twice: the first fills numba's cache, and the two must agree), then
@@ -24,7 +21,7 @@ whether the final checkpoint's state, policy and curve equal the reference's (it
 out). The TAMER loop checkpoints every ``SAVE_EVERY_S`` wall seconds (10 s); the soak sets 0.3 s, so that
 kills land between checkpoints. Prints one JSON object::
 
-    nice -n 10 python tests/experiment/test_kill_soak.py --trials 34 --seed 0
+    nice -n 10 python benchmarks/kill_soak.py --trials 34 --seed 0
 """
 
 from __future__ import annotations
@@ -328,19 +325,6 @@ def main() -> None:
     if out["run_dirs"] is None:
         shutil.rmtree(root, ignore_errors=True)
     print(json.dumps(out, indent=1))
-
-
-def test_a_killed_and_resumed_run_ends_as_the_uninterrupted_one(tmp_path):
-    """One trial of the cheapest config, shortened: killed once between its first checkpoint and its end,
-    resumed, and compared with the uninterrupted run."""
-    cfg = compose_train("logger.backend=none", *CONFIGS["cem+fusion"], "agent.iterations=4", "seed=7")
-    reference = tmp_path / "reference" / RUN
-    _, code, wall, first = wait(spawn(cfg, reference), None, reference / "checkpoints" / "last.pt")
-    assert code == 0, (tmp_path / "errors.txt").read_text()
-    row = trial(cfg, tmp_path / "trial" / RUN, reference, (min(first, wall), wall), 1, random.Random(0))
-    assert row["exit"] == 0 and row["kills"] == 1 and row["differs_at"] == []
-    assert row["metrics_identical"] and row["events_in_order"]
-    assert row["events_lost"] == row["events_duplicated"] == row["events_extra"] == 0
 
 
 if __name__ == "__main__":
