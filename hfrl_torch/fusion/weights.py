@@ -183,7 +183,7 @@ def weight_kind(cfg: DictConfig, evidence: Collection[str] = ()) -> str:
     if weight == "adaptive":
         decision_level = OPTIONS[name].reward == "none"
         return "paired" if "compared" in evidence and decision_level else "bandit"
-    if weight not in WEIGHT_KINDS or weight in ("constant", "annealed"):
+    if weight not in WEIGHT_OPTIONS:
         raise _bad_option(weight)
     return weight
 
