@@ -7,29 +7,17 @@ Needs Debian's chromium and the ``playwright`` package; skipped, saying why, whe
 from __future__ import annotations
 
 import http.server
-import shutil
 import threading
 import time
-from pathlib import Path
 
 import pytest
+from chromium import ARGS, CHROMIUM, needs_chromium
 
 from hfrl_torch.interactive.server import TeachingServer
 from hfrl_torch.interactive.session import TeachingSession
 
-CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 playwright = pytest.importorskip("playwright.sync_api", reason="the playwright package is not installed")
-pytestmark = pytest.mark.skipif(not Path(CHROMIUM).exists(), reason="Debian's chromium is not installed")
-ARGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-]
+pytestmark = needs_chromium
 
 
 def _decoy_site(trainer_url: str) -> tuple[http.server.ThreadingHTTPServer, str]:
