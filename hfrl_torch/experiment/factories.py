@@ -34,10 +34,12 @@ from hfrl_torch.fusion.fusion import Fusion
 from hfrl_torch.fusion.schedules import ConstantWeight
 from hfrl_torch.fusion.weights import make_weight
 from hfrl_torch.interactive.explain import WEIGHT_NAME, weight_sentence
+from hfrl_torch.interactive.journal import JOURNAL_NAME, PressJournal
 from hfrl_torch.interactive.keepaway_live import BrowserKeeperTrainer
 from hfrl_torch.interactive.live import DEFAULT_SPEED, KEY_NAMES, LiveTeaching
 from hfrl_torch.interactive.server import TeachingServer
 from hfrl_torch.interactive.session import TeachingSession
+from hfrl_torch.interactive.tetris_live import BrowserTetrisTrainer
 from hfrl_torch.models.tile_coding import TileCoding, keepaway_tile_widths
 from hfrl_torch.trainers import HumanLikeTiming, OracleTrainer, ReplayTrainer, Trainer, ValueProxyTrainer
 from hfrl_torch.trainers.departure import Departure
@@ -247,18 +249,12 @@ def make_reference_keepers(
 
 
 def make_keeper_trainer(
-    cfg: DictConfig,
-    config: KeepawayConfig,
-    fields: int,
-    log: FeedbackLog | None,
-    session: TeachingSession | None,
-) -> KeepawayOracle | KeepawayReplay | BrowserKeeperTrainer:
-    """Who judges the keepers: the simulated oracle, a replayed log, or the person on ``session``'s page."""
+    cfg: DictConfig, config: KeepawayConfig, fields: int, log: FeedbackLog | None
+) -> KeepawayOracle | KeepawayReplay:
+    """Who judges the keepers: the simulated oracle or a replayed log (a person: ``make_live_teaching``)."""
     t = cfg.trainer
     if t.name == "interactive":
-        if session is None:
-            raise ValueError("trainer=interactive needs the page's session")
-        return BrowserKeeperTrainer(session, fields, log)
+        raise ValueError("trainer=interactive: the person's trainer comes with the page (make_live_teaching)")
     if t.name == "replay":
         return KeepawayReplay.from_log(str(t.log), fields, log)
     timing = t.timing
@@ -279,11 +275,15 @@ def make_keeper_trainer(
 
 
 def make_live_teaching(
-    cfg: DictConfig, view: str, fusion: Fusion, drain: Callable[[TeachingSession], Trainer]
+    cfg: DictConfig,
+    view: str,
+    fusion: Fusion,
+    drain: Callable[[TeachingSession], BrowserTetrisTrainer | BrowserKeeperTrainer],
 ) -> LiveTeaching:
     """The browser trainer's page server for ``view`` (tetris or keepaway), started, with ``drain``'s trainer
-    taking the presses off the session (Tetris: a ``BrowserTetrisTrainer``; keepaway: a ``QueueTrainer``
-    that ``make_keeper_trainer`` wraps). The page says what sets ``fusion``'s weight in its own words."""
+    taking the presses off the session and logging them; with a log, each press is journaled on disk before
+    the page is told it was taken, and a killed run's presses the log lacks are logged now (``journal.py``).
+    The page says what sets ``fusion``'s weight in its own words."""
     t = cfg.trainer
     speed = DEFAULT_SPEED[view] if t.actions_per_s is None else float(t.actions_per_s)
     session = TeachingSession(actions_per_s=speed, reconnect_s=float(t.reconnect_wait_s))
@@ -303,7 +303,11 @@ def make_live_teaching(
         max_teachers=int(t.max_teachers),
         max_connections=int(t.max_connections),
     )
-    return LiveTeaching.start(server, session, drain(session))
+    trainer = drain(session)
+    if trainer.log is not None:
+        path = trainer.log.path.with_name(JOURNAL_NAME)
+        session.journal = PressJournal(path, trainer.log, session.reaction_s, trainer.discrete)
+    return LiveTeaching.start(server, session, trainer)
 
 
 # ------------------------------------------------------------------------------ fusion

@@ -157,6 +157,12 @@ class Learner(ABC):
         """What a checkpoint holds besides the config and the curve: ``state`` (to resume), ``policy`` (to
         play, ``evaluate.py``) and any task description."""
 
+    @property
+    def saves_at_start(self) -> bool:
+        """Whether a new run is checkpointed before its first chunk (default: when a person teaches, so that
+        a run killed in its first chunk resumes with the presses its log and journal hold)."""
+        return OmegaConf.select(self.cfg, "trainer.name", default=None) == "interactive"
+
     def save_due(self) -> bool:
         """Whether a checkpoint is due after the chunk just learned (default: after every chunk)."""
         return True
@@ -306,6 +312,8 @@ def learn(
     learner.start(main)
     for cb in callbacks:
         cb.on_start(learner)
+    if not learner.resumed and learner.saves_at_start:
+        files.save(learner)
     bar = tqdm(
         total=learner.total,
         initial=min(learner.position, learner.total),

@@ -159,6 +159,17 @@ class FeedbackQueue:
             self._events.append(event)
             self._cond.notify_all()
 
+    def check_room(self) -> None:
+        """Raise what :meth:`put` would raise for one more event now (closed; full with ``overflow="error"``),
+        so that a caller can refuse an event before it records it elsewhere."""
+        with self._cond:
+            if self._closed:
+                raise FeedbackQueueClosedError("the feedback queue is closed; no more events are accepted")
+            if self.overflow == "error" and len(self._events) >= self.maxsize:
+                raise FeedbackQueueFullError(
+                    f"the feedback queue is full ({self.maxsize} events not yet drained)"
+                )
+
     def drain(self, timeout: float | None = None) -> list[FeedbackEvent]:
         """Take every waiting event, oldest first. Returns at once unless ``timeout`` (seconds) is given, in
         which case it waits up to that long for at least one event (or ``close``)."""

@@ -52,6 +52,7 @@ from hfrl_torch.envs.keepaway.records import KeepawayRecords
 from hfrl_torch.envs.keepaway.simulator import KeepawaySimulator, KeepawayState
 from hfrl_torch.feedback.events import FeedbackEvent, FeedbackQueue
 from hfrl_torch.feedback.log import FeedbackLog
+from hfrl_torch.interactive.journal import browser_session
 from hfrl_torch.interactive.session import SOURCE, TeachingSession
 from hfrl_torch.interactive.timeline import ScreenTimeline, credit_time
 
@@ -83,6 +84,7 @@ class BrowserKeeperTrainer:
     """
 
     source = SOURCE
+    discrete = False  # a press is credited on the field's continuous clock (``credit_time``)
 
     def __init__(
         self,
@@ -97,6 +99,7 @@ class BrowserKeeperTrainer:
         self.queue: FeedbackQueue = session.queue
         self.fields, self.field = fields, field
         self.log = log
+        self.press_session = "" if log is None else browser_session(log.session)
         self.timeline: ScreenTimeline = session.timeline
         self.waiting: deque[FeedbackEvent] = deque()
         self.given = 0
@@ -128,7 +131,14 @@ class BrowserKeeperTrainer:
         for ev in pressed:
             t, episode, step = self.credit_time(ev, now)
             credited.append(
-                FeedbackEvent(time=t, value=ev.value, source=ev.source, step=step, episode=episode)
+                FeedbackEvent(
+                    time=t,
+                    value=ev.value,
+                    source=ev.source,
+                    step=step,
+                    episode=episode,
+                    session=self.press_session,
+                )
             )
         return credited if self.log is None else self.log.extend(credited)
 

@@ -27,10 +27,12 @@ class LiveTeaching:
 
     server: TeachingServer
     session: TeachingSession
-    trainer: QueueTrainer
+    trainer: Any
+    """What takes the presses off the session's queue: a ``QueueTrainer`` (Tetris: ``BrowserTetrisTrainer``)
+    or keepaway's ``BrowserKeeperTrainer``."""
 
     @classmethod
-    def start(cls, server: TeachingServer, session: TeachingSession, trainer: QueueTrainer) -> LiveTeaching:
+    def start(cls, server: TeachingServer, session: TeachingSession, trainer: Any) -> LiveTeaching:
         """Start ``server``; raises ``ConfigError`` (one line) if it cannot serve where it was asked to."""
         try:
             server.start()
@@ -72,11 +74,13 @@ class LiveTeaching:
         queue = self.session.queue
         queue.close()
         left = queue.drain()
+        if self.session.journal is not None:
+            self.session.journal.close()
         if not left:
             return 0
         if self.session.log_left is not None:
             self.session.log_left(left)
-        elif self.trainer.log is not None:
+        elif isinstance(self.trainer, QueueTrainer) and self.trainer.log is not None:
             self.trainer.log.extend([self.trainer.label(ev) for ev in left])
         return len(left)
 

@@ -7,7 +7,8 @@ it (``timeline.py``); it goes into a ``FeedbackQueue`` that the run's browser tr
 from there into credit assignment and the feedback log like any trainer's events.
 
 A press the page is told was taken (``ack``, with the run's count of presses and what the press was filed
-under) is in the queue; the page counts only those. A press is not taken (:class:`NotTaken`, and the page
+under) is in the queue, and on disk in the run's press journal (``journal.py``) when the session has one; the
+page counts only those. A press is not taken (:class:`NotTaken`, and the page
 is told why) while the person says they are away, while nothing they could judge is on screen (a Tetris
 agent practising between games), once the run is finishing or stopping, or when the queue is full or
 closed. Presses made while paused are taken, filed under the frozen frame, and logged with the source
@@ -30,6 +31,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from hfrl_torch.feedback.events import FeedbackEvent, FeedbackQueue
+from hfrl_torch.interactive.journal import PressJournal
 from hfrl_torch.interactive.messages import (
     MAX_SPEED,
     MIN_SPEED,
@@ -90,6 +92,9 @@ class TeachingSession:
         if not reconnect_s >= 0:
             raise ValueError(f"reconnect_s={reconnect_s!r} is invalid: must be at least 0 seconds")
         self.queue = FeedbackQueue(overflow="error")  # a press acknowledged is never dropped
+        self.journal: PressJournal | None = None
+        """Where each press is written, fsync'd, before the page is told it was taken (None: nowhere, the
+        press is saved once the loop logs it); set with the run's feedback log (``make_live_teaching``)."""
         self.log_left: Callable[[list[FeedbackEvent]], object] | None = None
         """Writes the presses left in the queue when the run stops to the feedback log (set by the trainer
         that drains the queue and knows how to credit them; None: ``LiveTeaching``'s ``QueueTrainer``)."""
@@ -207,15 +212,23 @@ class TeachingSession:
             raise NotTaken(why)
         episode, step, label = (-1, -1, "") if seen is None else (seen.episode, seen.step, seen.label)
         source = PAUSED_SOURCE if self.paused else SOURCE
-        self.queue.put(
-            Press(time=now, value=message.value, source=source, step=step, episode=episode, frame=seen)
-        )
+        press = Press(time=now, value=message.value, source=source, step=step, episode=episode, frame=seen)
+        self.queue.check_room()  # a press that cannot be queued is refused before it is journaled
+        if self.journal is not None:
+            try:
+                self.journal.write(now, message.value, source, seen)
+            except OSError as e:
+                self.not_taken += 1
+                raise NotTaken(
+                    f"this press could not be saved on the run's disk ({e.strerror or e})"
+                ) from None
+        self.queue.put(press)
         self.taken += 1
         self.taken_good += message.value > 0
         self.taken_paused += self.paused
-        press = {"value": message.value, "filed": label, "episode": episode, "step": step}
-        self.presses.append({**press, "paused": self.paused})
-        return {"id": message.id, "given": self.taken, "paused": self.paused, **press}
+        filed = {"value": message.value, "filed": label, "episode": episode, "step": step}
+        self.presses.append({**filed, "paused": self.paused})
+        return {"id": message.id, "given": self.taken, "paused": self.paused, **filed}
 
     def reject(self) -> None:
         """Count a rejected message."""

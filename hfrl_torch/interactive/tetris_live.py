@@ -14,6 +14,7 @@ from hfrl_torch import keys
 from hfrl_torch.envs.tetris.pieces import PIECE_NAMES, PlacementTable, placement_table
 from hfrl_torch.feedback.events import FeedbackEvent
 from hfrl_torch.feedback.log import FeedbackLog
+from hfrl_torch.interactive.journal import browser_session
 from hfrl_torch.interactive.session import SOURCE, TeachingSession
 from hfrl_torch.interactive.timeline import REACTION_S, credit_time
 from hfrl_torch.trainers.base import Events
@@ -89,10 +90,12 @@ class BrowserTetrisTrainer(QueueTrainer):
     """
 
     source = SOURCE
+    discrete = True  # a press is credited within its placement (``credit_time``)
 
     def __init__(self, session: TeachingSession, log: FeedbackLog | None = None) -> None:
         super().__init__(session.queue, log=log)
         self.session = session
+        self.press_session = "" if log is None else browser_session(log.session)
         self._now = 0.0
         session.log_left = self.log_left
 
@@ -101,10 +104,15 @@ class BrowserTetrisTrainer(QueueTrainer):
         credit time (the placement before its time, as ``QueueTrainer``, where no frame was shown)."""
         seen, later = self.session.filed(event)
         if seen is None:
-            return super().label(event)
+            return super().label(event).stamped(self.press_session)
         t = credit_time(seen, later, self.session.reaction_s, max(self._now, event.time), discrete=True)
         return FeedbackEvent(
-            time=t, value=event.value, source=event.source, step=seen.step, episode=seen.episode
+            time=t,
+            value=event.value,
+            source=event.source,
+            step=seen.step,
+            episode=seen.episode,
+            session=self.press_session,
         )
 
     def give(

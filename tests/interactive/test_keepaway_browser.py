@@ -69,7 +69,7 @@ def test_presses_are_placed_on_the_fields_simulated_clock_and_logged(tmp_path):
     events = load_feedback_log(tmp_path / "feedback.jsonl")
     assert [e.time for e in events] == pytest.approx([5.6, 5.4, 5.5])
     assert [(e.value, e.episode, e.step) for e in events] == [(1.0, -1, -1), (1.0, 3, 6), (-1.0, 3, 7)]
-    assert {(e.source, e.session) for e in events} == {("human:browser", "run1")}
+    assert {(e.source, e.session) for e in events} == {("human:browser", "run1/browser")}
     assert trainer.state_dict() == {"given": 3, "positive": 2, "waiting": [], "now": 5.5}
 
 
@@ -187,8 +187,13 @@ def test_a_taught_loop_learns_from_presses_at_real_time(tmp_path, monkeypatch, r
 
     session.sleep = sleep
     session.connect()
-    page = LiveTeaching(TeachingServer(session, port=0), session, QueueTrainer(session.queue))  # not served
-    monkeypatch.setattr(keepaway_sarsa, "make_live_teaching", lambda cfg, view, fusion, drain: page)
+    monkeypatch.setattr(  # not served
+        keepaway_sarsa,
+        "make_live_teaching",
+        lambda cfg, view, fusion, drain: LiveTeaching(
+            TeachingServer(session, port=0), session, drain(session)
+        ),
+    )
     over = ["domain=keepaway", "trainer=interactive", "trainer.wait_for_page_s=0", "agent.table_bits=12"]
     learner, _ = run_learner(tmp_path, *over, f"agent.hours={150 / 36000}", "fusion.weight=0.5")
     assert 14.85 <= clock[0] <= 17.0  # 150+ cycles at real time: the last step may run a few more
@@ -238,9 +243,13 @@ def test_finish_from_the_page_ends_the_keepers_run_with_a_checkpoint(tmp_path, m
 
     session.sleep = sleep
     session.connect()
-    page = LiveTeaching(TeachingServer(session, port=0), session, QueueTrainer(session.queue))
-    monkeypatch.setattr(page, "stop", lambda reason, saved: ended.append((reason, saved)) or 0)
-    monkeypatch.setattr(keepaway_sarsa, "make_live_teaching", lambda cfg, view, fusion, drain: page)
+
+    def live(cfg, view, fusion, drain):
+        page = LiveTeaching(TeachingServer(session, port=0), session, drain(session))
+        monkeypatch.setattr(page, "stop", lambda reason, saved: ended.append((reason, saved)) or 0)
+        return page
+
+    monkeypatch.setattr(keepaway_sarsa, "make_live_teaching", live)
     over = ["domain=keepaway", "trainer=interactive", "trainer.wait_for_page_s=0", "agent.table_bits=12"]
     learner, final = run_learner(tmp_path, *over, "agent.hours=0.05", "agent.log_minutes=0.05")
     assert 4.0 <= clock[0] < 4.5  # the chunk ended at the request, not at the 3 simulated minutes

@@ -97,7 +97,7 @@ class KeepawayDQN(DeepQLearner):
         return make_shared_tile_tamer(self.cfg, self.config, self.boards)
 
     def make_feedback(self) -> Transform:
-        return KeeperFeedback(make_keeper_trainer(self.cfg, self.config, self.boards, self.log, None))
+        return KeeperFeedback(make_keeper_trainer(self.cfg, self.config, self.boards, self.log))
 
     def watched_seconds(self, nxt: TensorDictBase) -> float:
         return float(nxt[keys.STEP_CYCLES].sum()) / CYCLES_PER_SECOND

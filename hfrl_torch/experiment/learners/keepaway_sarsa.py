@@ -78,9 +78,8 @@ from hfrl_torch.experiment.run import Learner, Point
 from hfrl_torch.feedback.channel import FeedbackChannel
 from hfrl_torch.feedback.log import FeedbackLog
 from hfrl_torch.fusion.transform import FeedbackFusion, FusionModule
-from hfrl_torch.interactive.keepaway_live import KeepawayWatcher, wait_for_teacher
+from hfrl_torch.interactive.keepaway_live import BrowserKeeperTrainer, KeepawayWatcher, wait_for_teacher
 from hfrl_torch.interactive.live import LiveTeaching
-from hfrl_torch.trainers.queue_trainer import QueueTrainer
 
 STEPS_PER_CHUNK = 200  # env steps per chunk (each usually one simulator cycle)
 # one row per finished episode of a taught learner: its human effort and the weight it was played at
@@ -120,10 +119,11 @@ class SarsaKeepers(Learner):
             if self.person:
                 log = self.log
                 self.teaching = make_live_teaching(
-                    cfg, "keepaway", self.fusion, lambda session: QueueTrainer(session.queue, log=log)
+                    cfg, "keepaway", self.fusion, lambda session: BrowserKeeperTrainer(session, fields, log)
                 )
-            session = None if self.teaching is None else self.teaching.session
-            self.trainer = make_keeper_trainer(cfg, config, fields, self.log, session)
+                self.trainer = self.teaching.trainer
+            else:
+                self.trainer = make_keeper_trainer(cfg, config, fields, self.log)
             self.tamer, self.owners = make_keeper_tamer(cfg, self.agent_sarsa, fields, self.n)
             self.fuse = FusionModule(self.fusion)
             self.channel = FeedbackChannel(fields)
