@@ -47,6 +47,7 @@ from hfrl_torch.interactive.messages import Feedback, MessageError, RateLimiter,
 from hfrl_torch.interactive.session import NotTaken, TeachingSession
 
 STATIC = Path(__file__).parent / "static"
+STATIC_FILES = frozenset(p.name for p in STATIC.iterdir() if p.is_file() and p.name != "index.html")
 LOG = logging.getLogger("hfrl_torch.interactive")
 FRAME_POLL_S = 0.02
 HARD_MAX_BYTES = 65536  # aiohttp closes a connection whose frame is larger than this
@@ -167,6 +168,17 @@ class _CountingLogger(logging.Logger):
             self.server.rejections.add("bad HTTP request", text)
 
 
+class _Refused(asyncio.Protocol):
+    """A connection past the cap: answered 503 and closed (its file handle is free again at once)."""
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        body = b"too many connections to the training run's page; try again shortly"
+        head = f"HTTP/1.1 503 Service Unavailable\r\nContent-Length: {len(body)}\r\nConnection: close\r\n\r\n"
+        assert isinstance(transport, asyncio.WriteTransport)
+        transport.write(head.encode() + body)
+        transport.close()
+
+
 class TeachingServer:
     """Serves the page and relays between it and a :class:`TeachingSession`.
 
@@ -180,6 +192,10 @@ class TeachingServer:
     :param max_messages_per_s: rate limit of the session, all pages together (bursts of twice as many).
     :param max_teachers: pages that may teach at once; later pages only watch.
     :param max_connections: pages open at once, teaching or watching; more are refused.
+    :param max_http_connections: TCP connections open at once, pages and file requests together; one more
+        is answered 503 and closed at once, so that a flood of sockets cannot use up the run's file handles.
+    :param idle_timeout_s: a connection that has not sent a whole request (or stays idle between two) this
+        long is closed, so that half-sent requests do not hold connections; open pages are not affected.
     :param allowed_hosts: more names the page may be reached by (e.g. the machine's name on the LAN).
     :param rejection_log_s: seconds between the log lines that count rejections.
     :param clock: the rate limit's clock (seconds; ``time.monotonic``).
@@ -197,6 +213,8 @@ class TeachingServer:
         max_messages_per_s: float = 20.0,
         max_teachers: int = 1,
         max_connections: int = 4,
+        max_http_connections: int = 64,
+        idle_timeout_s: float = 10.0,
         allowed_hosts: Iterable[str] = (),
         rejection_log_s: float = 10.0,
         clock: Callable[[], float] = time.monotonic,
@@ -206,6 +224,13 @@ class TeachingServer:
                 f"TeachingServer needs 1 <= max_teachers <= max_connections, got {max_teachers} and "
                 f"{max_connections}"
             )
+        if max_http_connections < max_connections:
+            raise ValueError(
+                f"TeachingServer needs max_http_connections >= max_connections, got {max_http_connections} "
+                f"and {max_connections}"
+            )
+        if not idle_timeout_s > 0:
+            raise ValueError(f"TeachingServer idle_timeout_s must be > 0, got {idle_timeout_s!r}")
         if not rejection_log_s > 0:
             raise ValueError(f"TeachingServer rejection_log_s must be > 0, got {rejection_log_s!r}")
         if token is None and not is_loopback(host):
@@ -220,6 +245,8 @@ class TeachingServer:
         self.max_messages_per_s = max_messages_per_s
         self.max_teachers = max_teachers
         self.max_connections = max_connections
+        self.max_http_connections = max_http_connections
+        self.idle_timeout_s = float(idle_timeout_s)
         self.allowed_hosts = {h.strip().lower().strip("[]") for h in allowed_hosts}
         self.clock = clock
         self.rejections = RejectionLog(rejection_log_s)
@@ -231,9 +258,11 @@ class TeachingServer:
         self._open = 0
         self._closing = False
         self._background: set[asyncio.Future[bool]] = set()
+        self._senders: dict[web.WebSocketResponse, asyncio.Future[None]] = {}
         self._hosts: set[str] = set()
         self._loop: asyncio.AbstractEventLoop | None = None
         self._runner: web.AppRunner | None = None
+        self._listener: asyncio.Server | None = None
         self._thread: threading.Thread | None = None
         self._started = threading.Event()
         self._error: BaseException | None = None
@@ -352,6 +381,7 @@ class TeachingServer:
         (self._teachers if teaching else self._watchers).append(ws)
         self.session.connect()
         sender = asyncio.ensure_future(self._send_frames(ws))
+        self._senders[ws] = sender
         try:
             config = {"type": "config", "keys": self.keys, "view": self.view, **self.session.info}
             timing = {"reaction_s": self.session.reaction_s, "reconnect_s": self.session.reconnect_s}
@@ -368,6 +398,7 @@ class TeachingServer:
                     )
         finally:
             sender.cancel()
+            self._senders.pop(ws, None)
             self._sent.pop(ws, None)
             self._forget(ws)
             self._open -= 1
@@ -427,10 +458,8 @@ class TeachingServer:
             await self._reject(ws, "not taken", f"not taken: {e}", id=press)
             return
         await self._send(ws, {"type": "ack", "message": type(message).__name__.lower(), **reply})
-        if not isinstance(message, Feedback):
-            settings = self.session.settings()
-            for page in [*self._teachers, *self._watchers]:
-                await self._send(page, settings)
+        # the new settings reach every page through its own sender (within FRAME_POLL_S): a page that stops
+        # reading blocks only its sender, never this handler and the teacher's next acknowledgement
 
     def _on_screen(self, ws: web.WebSocketResponse, wall: float) -> int:
         """The version of the last frame sent to ``ws`` at or before ``wall`` (-1: none)."""
@@ -499,8 +528,28 @@ class TeachingServer:
         app.on_response_prepare.append(self._secure_headers)
         app.router.add_get("/", self._index)
         app.router.add_get("/ws", self._ws)
-        app.router.add_static("/static/", STATIC)
+        app.router.add_get("/static/{name}", self._static)
         return app
+
+    async def _static(self, request: web.Request) -> web.StreamResponse:
+        """One of the page's own files, by name from a fixed list: any other name (a long one included, which
+        the file system would refuse with an error) is a plain 404, and no path leaves the folder."""
+        name = request.match_info["name"]
+        if name not in STATIC_FILES:
+            return web.Response(status=404, text="not found")
+        return web.FileResponse(STATIC / name)
+
+    def _protocol(self) -> asyncio.BaseProtocol:
+        """aiohttp's handler for a new connection, or, past ``max_http_connections``, a 503 and a close."""
+        assert self._runner is not None and self._runner.server is not None
+        server = self._runner.server
+        if len(server.connections) >= self.max_http_connections:
+            self.rejections.add(
+                "too many connections",
+                f"{len(server.connections)} open; allowed: {self.max_http_connections}",
+            )
+            return _Refused()
+        return server()
 
     def _loop_error(self, loop: asyncio.AbstractEventLoop, context: dict[str, Any]) -> None:
         self._unhandled(context.get("exception") or RuntimeError(str(context.get("message"))))
@@ -513,12 +562,17 @@ class TeachingServer:
 
         async def start() -> None:
             self._runner = web.AppRunner(
-                self._app(), access_log=None, shutdown_timeout=CLOSE_TIMEOUT_S, logger=_CountingLogger(self)
+                self._app(),
+                access_log=None,
+                shutdown_timeout=CLOSE_TIMEOUT_S,
+                logger=_CountingLogger(self),
+                keepalive_timeout=self.idle_timeout_s,
             )
             await self._runner.setup()
-            site = web.TCPSite(self._runner, self.host, self.port)
-            await site.start()
-            self.port = int(self._runner.addresses[0][1])
+            self._listener = await loop.create_server(
+                self._protocol, self.host, self.port, reuse_address=True
+            )
+            self.port = int(self._listener.sockets[0].getsockname()[1])
             self._hosts = self._names()
 
         try:
@@ -531,6 +585,8 @@ class TeachingServer:
         self._started.set()
         loop.run_forever()
         flusher.cancel()
+        if self._listener is not None:
+            self._listener.close()
         if self._runner is not None:
             loop.run_until_complete(self._runner.cleanup())
         pending = [t for t in asyncio.all_tasks(loop) if not t.done()]
@@ -543,14 +599,22 @@ class TeachingServer:
     async def _shutdown(self, final: Callable[[], dict[str, Any]] | None) -> None:
         """Stop taking messages, tell every page ``final()``, close them, then the server."""
         self._closing = True
+        for sender in self._senders.values():  # the end message is the last each page gets
+            sender.cancel()
+        await asyncio.gather(*self._senders.values(), return_exceptions=True)
         pages = [*self._teachers, *self._watchers]
         if final is not None:
             last = final()  # after the last acknowledgement: its counts are the run's
-            await asyncio.gather(*(self._send(ws, last) for ws in pages), return_exceptions=True)
+            sends = (
+                asyncio.wait_for(self._send(ws, last), CLOSE_TIMEOUT_S) for ws in pages
+            )  # a stalled page
+            await asyncio.gather(*sends, return_exceptions=True)
         await asyncio.gather(
             *(ws.close(code=WSCloseCode.GOING_AWAY, message=b"the training run stopped") for ws in pages),
             return_exceptions=True,
         )
+        if self._listener is not None:
+            self._listener.close()
         if self._runner is not None:
             runner, self._runner = self._runner, None
             await runner.cleanup()
