@@ -18,11 +18,14 @@ settings.load_profile("deterministic")
 # `make test` runs them alone after the rest, which runs on both cores (pytest-xdist).
 SERIAL_DIRS = {"interactive"}
 SERIAL_FILES = {"test_events.py"}
+PARALLEL_FILES = {"test_press_journal.py", "test_kill_while_paused.py"}  # in interactive/, no latency
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """Mark the latency and browser tests ``serial``."""
     for item in items:
+        if item.path.name in PARALLEL_FILES:
+            continue
         if SERIAL_DIRS & set(item.path.parts) or item.path.name in SERIAL_FILES:
             item.add_marker(pytest.mark.serial)
 

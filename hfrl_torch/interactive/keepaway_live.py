@@ -252,11 +252,10 @@ class KeepawayWatcher:
     def cycle(self, state: KeepawayState) -> None:
         """After a simulator cycle: wait for its turn while a person teaches, then show it."""
         self.block_cycles += 1
-        if not self.session.page_open():
-            return
         f = self.field
         cycles = int(state.episode_cycles[f])
         holder = int(state.prev_holder[f])
+        # the last decision is followed with the page closed too, so that a page opened mid-episode names it
         if holder >= 0 and int(state.last_decision[f, holder]) == cycles - 1:  # decided this cycle
             self.target = int(state.pass_target[f])
             self.action = (
@@ -264,6 +263,8 @@ class KeepawayWatcher:
                 if self.target < 0
                 else f"keeper {holder + 1} passes to keeper {self.target + 1}"
             )
+        if not self.session.page_open():
+            return
         teaching = self.session.teaching()
         if teaching:
             self.block_taught += 1

@@ -31,6 +31,7 @@ import asyncio
 import contextlib
 import ipaddress
 import logging
+import re
 import secrets
 import socket
 import threading
@@ -47,6 +48,7 @@ from hfrl_torch.interactive.messages import Feedback, MessageError, RateLimiter,
 from hfrl_torch.interactive.session import NotTaken, TeachingSession
 
 STATIC = Path(__file__).parent / "static"
+TAB_NAME = re.compile(r"[A-Za-z0-9_-]{1,64}")
 STATIC_FILES = frozenset(p.name for p in STATIC.iterdir() if p.is_file() and p.name != "index.html")
 LOG = logging.getLogger("hfrl_torch.interactive")
 FRAME_POLL_S = 0.02
@@ -196,6 +198,8 @@ class TeachingServer:
         is answered 503 and closed at once, so that a flood of sockets cannot use up the run's file handles.
     :param idle_timeout_s: a connection that has not sent a whole request (or stays idle between two) this
         long is closed, so that half-sent requests do not hold connections; open pages are not affected.
+    :param hold_s: how long a teaching page's place is kept for its tab after it closes (a reload: the page
+        sends its tab's name), before a watching page takes it (None: the session's ``reconnect_s``).
     :param allowed_hosts: more names the page may be reached by (e.g. the machine's name on the LAN).
     :param rejection_log_s: seconds between the log lines that count rejections.
     :param clock: the rate limit's clock (seconds; ``time.monotonic``).
@@ -215,6 +219,7 @@ class TeachingServer:
         max_connections: int = 4,
         max_http_connections: int = 64,
         idle_timeout_s: float = 10.0,
+        hold_s: float | None = None,
         allowed_hosts: Iterable[str] = (),
         rejection_log_s: float = 10.0,
         clock: Callable[[], float] = time.monotonic,
@@ -259,6 +264,9 @@ class TeachingServer:
         self._closing = False
         self._background: set[asyncio.Future[bool]] = set()
         self._senders: dict[web.WebSocketResponse, asyncio.Future[None]] = {}
+        self._tabs: dict[web.WebSocketResponse, str] = {}  # each page's tab name ("": none given)
+        self._held: dict[str, asyncio.TimerHandle] = {}  # teaching places kept for a reloading tab
+        self.hold_s = session.reconnect_s if hold_s is None else float(hold_s)
         self._hosts: set[str] = set()
         self._loop: asyncio.AbstractEventLoop | None = None
         self._runner: web.AppRunner | None = None
@@ -377,8 +385,11 @@ class TeachingServer:
         except BaseException:
             self._open -= 1
             raise
-        teaching = len(self._teachers) < self.max_teachers
+        tab = request.query.get("tab", "")
+        tab = tab if TAB_NAME.fullmatch(tab) else ""
+        teaching = self._claim(tab)
         (self._teachers if teaching else self._watchers).append(ws)
+        self._tabs[ws] = tab
         self.session.connect()
         sender = asyncio.ensure_future(self._send_frames(ws))
         self._senders[ws] = sender
@@ -411,17 +422,41 @@ class TeachingServer:
             return {"type": "role", "role": "teach", "text": "connected: you are teaching"}
         return {"type": "role", "role": "watch", "text": "watching only: another page is teaching"}
 
+    def _claim(self, tab: str) -> bool:
+        """Whether a page opening in ``tab`` teaches: the tab whose teaching place is held for it does (a
+        reload), otherwise the page takes a free place; a held place is not free."""
+        held = self._held.pop(tab, None) if tab else None
+        if held is not None:
+            held.cancel()
+            return True
+        return len(self._teachers) + len(self._held) < self.max_teachers
+
     def _forget(self, ws: web.WebSocketResponse) -> None:
+        tab = self._tabs.pop(ws, "")
         if ws in self._watchers:
             self._watchers.remove(ws)
         if ws in self._teachers:
             self._teachers.remove(ws)
-            while self._watchers and len(self._teachers) < self.max_teachers and not self._closing:
-                promoted = self._watchers.pop(0)
-                self._teachers.append(promoted)
-                task = asyncio.ensure_future(self._send(promoted, self._role(True)))
-                self._background.add(task)
-                task.add_done_callback(self._background.discard)
+            if tab and self.hold_s > 0 and not self._closing:  # a reload: its place waits for it
+                assert self._loop is not None
+                self._held[tab] = self._loop.call_later(self.hold_s, self._release, tab)
+            else:
+                self._promote()
+
+    def _release(self, tab: str) -> None:
+        """The teacher's tab did not come back in time: its place goes to a watching page."""
+        self._held.pop(tab, None)
+        self._promote()
+
+    def _promote(self) -> None:
+        while (
+            self._watchers and len(self._teachers) + len(self._held) < self.max_teachers and not self._closing
+        ):
+            promoted = self._watchers.pop(0)
+            self._teachers.append(promoted)
+            task = asyncio.ensure_future(self._send(promoted, self._role(True)))
+            self._background.add(task)
+            task.add_done_callback(self._background.discard)
 
     async def _on_message(self, ws: web.WebSocketResponse, msg: WSMessage) -> None:
         if msg.type == WSMsgType.TEXT:

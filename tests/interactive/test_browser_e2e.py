@@ -279,7 +279,7 @@ def test_tetris_presses_are_filed_and_counted_as_saved_through_reconnects_and_fi
         page.wait_for_function(
             "document.getElementById('status').textContent.includes('Connection to the run lost')"
         )  # and the run holds still for it: with the page away, 50 practice rounds would take well under 1 s
-        assert "The agent waits up to 10 s for this page" in page.inner_text("#status")
+        assert "the agent waits up to 10 s for this page" in page.inner_text("#status")
         page.keyboard.press("/")
         assert "not counted" in page.inner_text("#last-press") and _given(page) == counted
         assert page.evaluate(BUTTONS) == where  # the buttons stay put
@@ -291,6 +291,12 @@ def test_tetris_presses_are_filed_and_counted_as_saved_through_reconnects_and_fi
         presses.append(_press_safely(page, "z"))
         (tmp_path / "page.png").write_bytes(page.screenshot())
 
+        asked: list[str] = []
+        page.once("dialog", lambda d: (asked.append(d.message), d.dismiss()))
+        page.click("#finish")  # asked first; "Cancel" leaves the run going
+        time.sleep(1.0)
+        assert asked and "Finish and save now?" in asked[0] and not page.is_visible("#summary")
+        page.once("dialog", lambda d: d.accept())
         page.click("#finish")
         page.wait_for_selector("#summary", state="visible", timeout=60_000)
         summary = page.inner_text("#summary")

@@ -277,6 +277,41 @@ def test_one_page_teaches_the_others_watch_and_the_cap_holds():
     assert server.rejections.counts["too many pages"] == 0  # counted, then logged and cleared at stop
 
 
+def test_a_reloading_teacher_keeps_its_place_and_a_tab_that_does_not_come_back_hands_it_on():
+    session = TeachingSession()
+    with TeachingServer(session, port=0, max_connections=3, hold_s=1.0) as server:
+
+        async def page(client: aiohttp.ClientSession, tab: str):
+            url = f"ws://127.0.0.1:{server.port}/ws?tab={tab}"
+            ws = await client.ws_connect(url, origin=_origin(server))
+            first = [json.loads((await ws.receive(timeout=10)).data) for _ in range(3)]
+            return ws, first[2]["role"]
+
+        async def scenario() -> None:
+            async with aiohttp.ClientSession() as client:
+                (t, rt), (w, rw) = await page(client, "tabA"), await page(client, "tabB")
+                assert (rt, rw) == ("teach", "watch")
+                await t.close()  # the teaching tab reloads
+                await asyncio.sleep(0.2)
+                (t, rt) = await page(client, "tabA")  # ... and comes back as the teacher
+                assert rt == "teach" and (server.teachers, server.watchers) == (1, 1)
+                await w.send_str(FEEDBACK)
+                assert "only watches" in (await _reply(w))["message"]
+                await t.close()  # closed for good: after hold_s the watching tab teaches
+                await asyncio.sleep(0.3)
+                (x, rx) = await page(client, "tabC")  # a page opening meanwhile does not take the place
+                assert rx == "watch"
+                started = time.monotonic()
+                assert (await _reply(w))["role"] == "teach"
+                assert 0.3 < time.monotonic() - started + 0.3 < 2.0
+                await w.send_str(FEEDBACK)
+                assert (await _reply(w))["type"] == "ack"
+                await w.close()
+                await x.close()
+
+        asyncio.run(scenario())
+
+
 def test_rejections_are_logged_in_aggregate(caplog):
     session = TeachingSession()
     with caplog.at_level(logging.WARNING, logger="hfrl_torch.interactive"):

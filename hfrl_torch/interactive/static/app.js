@@ -4,7 +4,13 @@
 "use strict";
 
 const token = new URLSearchParams(location.search).get("token");
-const wsUrl = `${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws${token ? "?token=" + encodeURIComponent(token) : ""}`;
+// this tab's name, kept across reloads (sessionStorage is per tab): the run keeps a reloading teacher's
+// place for it, so a reload does not hand teaching to another tab
+const tab = sessionStorage.getItem("hfrl-tab") ||
+  Array.from(crypto.getRandomValues(new Uint8Array(12)), (b) => b.toString(16).padStart(2, "0")).join("");
+sessionStorage.setItem("hfrl-tab", tab);
+const wsQuery = new URLSearchParams(token ? { token, tab } : { tab });
+const wsUrl = `${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws?${wsQuery}`;
 const $ = (id) => document.getElementById(id);
 const S = {
   ws: null, connected: false, everConnected: false, failures: 0, ended: null,
@@ -55,10 +61,11 @@ function statusText() {
   if (S.ended) return "The session has ended: see the summary below.";
   if (!S.connected) {
     if (!S.everConnected) return "Connecting to the run...";
-    return S.failures > 4
+    // one reconnection refused: on this machine that means the run's process is gone, not a network blip
+    return S.failures > 1
       ? "The run does not answer: it may have stopped (the terminal says). This page reconnects if it comes back."
       : "Connection to the run lost; trying again... Presses are not counted until it is back." +
-        (S.reconnect > 0 ? ` The agent waits up to ${duration(S.reconnect)} for this page, then goes on without you.` : "");
+        (S.reconnect > 0 ? ` If the run is still going, the agent waits up to ${duration(S.reconnect)} for this page, then goes on without you.` : "");
   }
   if (S.ending === "finishing") return "Finishing: the agent ends this round and saves the run. New presses are not counted.";
   if (S.ending) return "The run is stopping (stopped from the terminal): it saves what you taught. New presses are not counted.";
@@ -437,7 +444,9 @@ button("good", () => feedback(1));
 button("bad", () => feedback(-1));
 button("pause", () => toggle("pause", "paused", S.paused));
 button("presence", () => toggle("presence", "here", S.here));
-button("finish", () => send({ type: "finish" }));
+button("finish", () => {
+  if (confirm("Finish and save now? The agent stops learning and this session ends.")) send({ type: "finish" });
+});
 const speed = $("speed");
 speed.addEventListener("input", () => { $("speed-value").textContent = speed.value; });
 speed.addEventListener("change", () => {
