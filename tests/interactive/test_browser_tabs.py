@@ -14,8 +14,10 @@ from pathlib import Path
 import pytest
 from chromium import ARGS, CHROMIUM, needs_chromium
 
+from hfrl_torch.interactive.live import LiveTeaching
 from hfrl_torch.interactive.server import TeachingServer
 from hfrl_torch.interactive.session import TeachingSession
+from hfrl_torch.trainers.queue_trainer import QueueTrainer
 
 playwright = pytest.importorskip("playwright.sync_api", reason="the playwright package is not installed")
 pytestmark = needs_chromium
@@ -56,8 +58,10 @@ def test_reloading_the_teaching_tab_keeps_it_teaching_and_the_other_tab_watching
 _RUN = textwrap.dedent(
     """
     import time
-    from hfrl_torch.interactive.server import TeachingServer
+    from hfrl_torch.interactive.live import LiveTeaching
+from hfrl_torch.interactive.server import TeachingServer
     from hfrl_torch.interactive.session import TeachingSession
+from hfrl_torch.trainers.queue_trainer import QueueTrainer
 
     server = TeachingServer(TeachingSession(), port=0)
     server.start()
@@ -86,3 +90,35 @@ def test_a_killed_run_is_said_to_have_stopped_within_about_two_seconds():
             browser.close()
     finally:
         run.kill()
+
+
+def test_the_summary_counts_the_presses_the_run_refused_and_those_the_page_kept_back():
+    session = TeachingSession(actions_per_s=5.0)
+    server = TeachingServer(session, port=0, view="keepaway")
+    server.start()
+    teaching = LiveTeaching(server, session, QueueTrainer(session.queue))
+    try:
+        with playwright.sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+            page = browser.new_page()
+            page.goto(server.url)
+            page.wait_for_function("S.connected && S.role === 'teach'")
+            session.set_live(False)  # the run refuses presses: nothing to judge
+            page.wait_for_function("!S.live")
+            page.keyboard.press("/")
+            page.wait_for_function(
+                "document.getElementById('last-press').textContent.includes('not counted')"
+            )
+            page.keyboard.press("h")  # away: the page keeps presses back itself
+            page.wait_for_function("!S.here")
+            page.keyboard.press("/")
+            page.keyboard.press("z")
+            teaching.stop("stopped")
+            page.wait_for_selector("#summary", state="visible", timeout=10_000)
+            said = page.inner_text("#summary-presses")
+            assert "0 presses counted" in said and "3 more were not counted" in said, said
+            assert "1 refused by the run" in said and "2 kept back by this page" in said, said
+            assert "2 you said you are away" in said, said
+            browser.close()
+    finally:
+        teaching.stop("stopped")

@@ -18,6 +18,7 @@ const S = {
   role: "teach", paused: false, here: true, live: true, ending: null, progress: {},
   given: 0, pending: new Map(), nextId: 0, curve: [], frame: null, reaction: 0.3, reconnect: 0, clearTimer: null,
   asked: {},
+  refusedHere: new Map(),  // presses this page did not send, by reason (since it was opened)
 };
 
 function send(obj) {
@@ -131,12 +132,33 @@ function flash(kind) {
 function feedback(value) {
   const why = whyNot();
   const word = value > 0 ? "Good" : "Bad";
-  if (why !== null) { lastPress(`${word} not counted: ${why}.`, true); return; }
+  if (why !== null) { refusedHere(why); lastPress(`${word} not counted: ${why}.`, true); return; }
   const id = S.nextId;
   S.nextId = (S.nextId + 1) % 1000000;
-  if (!send({ type: "feedback", value: value, id: id })) { lastPress(`${word} not counted: not connected.`, true); return; }
+  if (!send({ type: "feedback", value: value, id: id })) {
+    refusedHere("not connected");
+    lastPress(`${word} not counted: not connected.`, true);
+    return;
+  }
   S.pending.set(id, value);
   flash(value > 0 ? "good" : "bad");
+}
+
+function refusedHere(why) {
+  S.refusedHere.set(why, (S.refusedHere.get(why) || 0) + 1);
+}
+
+function notCountedText(byRun) {
+  const here = Array.from(S.refusedHere.values()).reduce((a, b) => a + b, 0);
+  if (!byRun && !here) return "";
+  const parts = [];
+  if (byRun) parts.push(`${byRun} refused by the run (made while away, with nothing to judge on screen, or after the stop)`);
+  if (here) {
+    const why = Array.from(S.refusedHere, ([reason, n]) => `${n} ${reason}`).join("; ");
+    parts.push(`${here} kept back by this page since it was opened (${why})`);
+  }
+  const n = byRun + here;
+  return `${n} more ${n === 1 ? "was" : "were"} not counted: ${parts.join(", and ")}.`;
 }
 
 function onAck(m) {
@@ -331,7 +353,7 @@ function showSummary(m) {
   if (m.paused) extra.push(`${m.paused} while paused`);
   $("summary-presses").textContent =
     `${m.given} presses counted: ${m.good} good, ${m.bad} bad${extra.length ? " (" + extra.join(", ") + ")" : ""}. ` +
-    (m.not_taken ? `${m.not_taken} more were not counted (made while away, between games or after the stop).` : "");
+    notCountedText(m.not_taken || 0);
   drawCurveOn($("summary-curve"), m.curve);
   const unit = S.view === "keepaway" ? "seconds held" : "lines per test game";
   const taught = m.curve.filter((p) => p[2] >= 0.5).map((p) => p[1]);
