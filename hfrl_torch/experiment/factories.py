@@ -287,6 +287,7 @@ def make_live_teaching(
     t = cfg.trainer
     speed = DEFAULT_SPEED[view] if t.actions_per_s is None else float(t.actions_per_s)
     session = TeachingSession(actions_per_s=speed, reconnect_s=float(t.reconnect_wait_s))
+    session.set_live(False)  # nothing to judge until the learner shows its game (start-up takes seconds)
     session.info = {
         "weight_name": WEIGHT_NAME,
         "weight_sentence": weight_sentence(str(cfg.fusion.name), fusion.describe_weight, view),

@@ -188,6 +188,8 @@ class TeachingSession:
             return "the run is stopping; this press was not saved"
         if not self.here:
             return "you said you are away; press I'm here to teach again"
+        if not self.live and not len(self.timeline):
+            return "the run is starting: nothing is on screen to judge yet"
         if not self.live:
             return "the agent is practising on its own; presses count again when it plays on screen"
         return None
@@ -206,7 +208,7 @@ class TeachingSession:
                 if seen is None and len(self.timeline):
                     why = f"nothing to judge was on screen {self.reaction_s:g} s before this press"
             if seen is not None and seen.step < 0:
-                why = f"nothing to judge was on screen {self.reaction_s:g} s before this press"
+                why = f"no move had been made yet {self.reaction_s:g} s before this press: nothing to judge"
         if why is not None:
             self.not_taken += 1
             raise NotTaken(why)

@@ -58,10 +58,8 @@ def test_reloading_the_teaching_tab_keeps_it_teaching_and_the_other_tab_watching
 _RUN = textwrap.dedent(
     """
     import time
-    from hfrl_torch.interactive.live import LiveTeaching
-from hfrl_torch.interactive.server import TeachingServer
+    from hfrl_torch.interactive.server import TeachingServer
     from hfrl_torch.interactive.session import TeachingSession
-from hfrl_torch.trainers.queue_trainer import QueueTrainer
 
     server = TeachingServer(TeachingSession(), port=0)
     server.start()
@@ -103,8 +101,9 @@ def test_the_summary_counts_the_presses_the_run_refused_and_those_the_page_kept_
             page = browser.new_page()
             page.goto(server.url)
             page.wait_for_function("S.connected && S.role === 'teach'")
-            session.set_live(False)  # the run refuses presses: nothing to judge
-            page.wait_for_function("!S.live")
+            session.publish({"type": "status", "text": "a new episode"})
+            session.shown(0.0, 0, -1, "")  # on screen, but no move made yet: the run refuses presses
+            time.sleep(0.6)  # the frame on screen 0.3 s before the press is that one
             page.keyboard.press("/")
             page.wait_for_function(
                 "document.getElementById('last-press').textContent.includes('not counted')"

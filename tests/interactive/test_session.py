@@ -57,9 +57,13 @@ def test_a_press_is_filed_under_the_frame_on_screen_the_reaction_allowance_befor
 
 def test_presses_are_refused_when_nobody_can_judge_and_the_page_is_told_why():
     clock, session = _session()
+    session.set_live(False)  # as train.py starts it: nothing shown yet (start-up takes seconds)
+    with pytest.raises(NotTaken, match="the run is starting: nothing is on screen to judge yet"):
+        session.apply(Feedback(1.0))
+    session.set_live(True)
     _show(session, clock, 100.0, -1, "")  # a frame with nothing to judge (a new game's empty board)
     clock[0] = 100.4
-    with pytest.raises(NotTaken, match=r"nothing to judge was on screen 0\.3 s before"):
+    with pytest.raises(NotTaken, match=r"no move had been made yet 0\.3 s before this press"):
         session.apply(Feedback(1.0))
     _show(session, clock, 100.5, 0, "T at column 4")
     clock[0] = 101.0
@@ -82,7 +86,7 @@ def test_presses_are_refused_when_nobody_can_judge_and_the_page_is_told_why():
     with pytest.raises(NotTaken, match="the run is stopping"):
         session.apply(Feedback(1.0))
     assert [e.source for e in session.queue.drain()] == [PAUSED_SOURCE]
-    assert (session.taken, session.taken_paused, session.not_taken) == (1, 1, 5)
+    assert (session.taken, session.taken_paused, session.not_taken) == (1, 1, 6)
     session.queue.close()
     session.ending = None
     with pytest.raises(FeedbackQueueClosedError):

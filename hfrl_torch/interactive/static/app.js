@@ -43,7 +43,7 @@ function whyNot() {
   if (S.ending) return "the run is stopping";
   if (S.role !== "teach") return "another page is teaching";
   if (!S.here) return "you said you are away";
-  if (S.view === "tetris" && !S.live) return "the agent is practising on its own";
+  if (!S.live) return S.frame ? "the agent is practising on its own" : "the run is starting: nothing to judge yet";
   return null;
 }
 
@@ -72,7 +72,8 @@ function statusText() {
   if (S.ending) return "The run is stopping (stopped from the terminal): it saves what you taught. New presses are not counted.";
   if (S.role !== "teach") return "Watching only: another page is teaching.";
   if (!S.here) return `You're away: the agent practises on its own; presses are not counted. ${leftText()}.`;
-  if (S.view === "tetris" && !S.live) return "Practising on its own between your games; presses are not counted until your next game.";
+  if (!S.live && !S.frame) return "The run is starting: the game appears here in a moment. Presses count once it is on screen.";
+  if (!S.live) return "Practising on its own between your games; presses are not counted until your next game.";
   if (S.paused) return `Paused. A press now counts for the ${S.view === "tetris" ? "placement" : "moment"} on screen. Press Resume (${S.keys.pause}) to go on.`;
   return S.view === "tetris"
     ? "Your game: judge each placement. A press counts for the placement on screen a moment before it."
@@ -84,6 +85,7 @@ function coverText() {
   if (!S.connected) return S.everConnected ? "Not connected to the run." : "Connecting...";
   if (S.ending) return S.ending === "finishing" ? "Finishing and saving..." : "The run is stopping...";
   if (!S.here) return `You're away. The agent practises on its own: ${leftText()}. Press I'm here (${S.keys.presence}) to teach again before then.`;
+  if (!S.live && !S.frame) return "Starting the run...";
   if (S.view === "tetris" && !S.live) {
     const p = S.progress || {};
     const round = p.total === undefined ? "" : ` (round ${Math.min(p.done + 1, p.total)} of ${p.total})`;
