@@ -211,6 +211,23 @@ def _fits(page: Page, width: int) -> None:
     assert layout["scroll"] <= width and layout["wide"] == [], layout
 
 
+COLUMNS = """() => {
+  const v = document.getElementById("view").getBoundingClientRect();
+  return Array.from(document.querySelectorAll("#columns span"), (s) => {
+    const r = s.getBoundingClientRect();
+    return [s.textContent, r.x + r.width / 2, v.x + 2, v.width - 4];
+  });
+}"""
+
+
+def _numbered(page: Page, width: int) -> None:
+    """The board's columns are numbered 1..width under the board, each number under its own column."""
+    spans = page.evaluate(COLUMNS)
+    assert [t for t, *_ in spans] == [str(i) for i in range(1, width + 1)], spans
+    for i, (_, centre, left, inner) in enumerate(spans):
+        assert abs(centre - (left + (i + 0.5) * inner / width)) < 2, (i, spans)
+
+
 def _unmoved(page: Page, states: list[str]) -> None:
     """The Good and Bad buttons stay where they are while the page goes through ``states``."""
     where = page.evaluate(BUTTONS)
@@ -266,8 +283,10 @@ def test_tetris_presses_are_filed_and_counted_as_saved_through_reconnects_and_fi
             )
             assert (seen["game"], seen["placement"]) != (p["now"]["game"], p["now"]["placement"])
 
+        _numbered(page, 10)
         _unmoved(page, ["p", "p", "h", "h"])  # paused, away: other words, same buttons
         _fits(page, 390)
+        _numbered(page, 10)
         _unmoved(page, ["p", "p", "h", "h"])
         _fits(page, 1280)
         for key in ["p", "h"]:  # a second press before the first is confirmed undoes it

@@ -191,6 +191,13 @@ function drawBoard(board, marked, rows) {
   const h = board.length, w = board[0].length;
   const cell = Math.floor(Math.min(300 / w, 600 / h));
   if (c.width !== w * cell || c.height !== h * cell) { c.width = w * cell; c.height = h * cell; }
+  const cols = $("columns");  // the numbers the page's words use ("T at column 4"), so a press can be checked
+  if (cols.hidden || cols.childElementCount !== w) {
+    cols.replaceChildren(...Array.from({ length: w }, (_, i) => {
+      const span = document.createElement("span"); span.textContent = String(i + 1); return span;
+    }));
+    cols.hidden = false;
+  }
   const g = c.getContext("2d");
   g.fillStyle = "#111"; g.fillRect(0, 0, c.width, c.height);
   const mark = new Set((marked || []).map(([r, col]) => r * w + col));
@@ -239,6 +246,7 @@ function arrow(g, [x0, y0], [tx, ty]) {
 }
 
 function drawKeepaway(f) {
+  $("columns").hidden = true;
   const c = $("view");
   if (c.width !== 400 || c.height !== 400) { c.width = 400; c.height = 400; }
   const g = c.getContext("2d");
