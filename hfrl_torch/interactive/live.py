@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+import os
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,6 +20,7 @@ KEY_NAMES = ("good", "bad", "pause", "presence")
 # every 0.67 s, so that a press 0.3-1.0 s after a placement is filed under it; docs/browser.md), keepaway
 # decision periods per second (2 = real time at the 500 ms decisions of a taught run)
 DEFAULT_SPEED = {"tetris": 1.5, "keepaway": 2.0}
+SUMMARY_NAME = "teaching_summary.json"  # the end-of-session summary the page showed, kept in the run
 REASONS = ("finished", "finished_by_you", "stopped", "failed")
 
 
@@ -70,7 +73,18 @@ class LiveTeaching:
         if reason not in REASONS:
             raise ValueError(f"LiveTeaching.stop reason={reason!r} is invalid; allowed: {', '.join(REASONS)}")
         self.session.ending = self.session.ending or "stopping"  # no more pacing, no press taken
-        self.server.stop(final=lambda: self.session.summary(reason, saved))
+        told: dict[str, Any] = {}
+
+        def final() -> dict[str, Any]:  # called after the last acknowledgement: its counts are the run's
+            told.update(self.session.summary(reason, saved))
+            return told
+
+        self.server.stop(final=final)
+        if saved is not None and saved.get("summary_file"):  # the page's summary outlives the page
+            path = Path(saved["summary_file"])
+            tmp = path.with_suffix(".json.tmp")
+            tmp.write_text(json.dumps(told or self.session.summary(reason, saved), indent=1) + "\n")
+            os.replace(tmp, path)
         queue = self.session.queue
         queue.close()
         left = queue.drain()
@@ -94,4 +108,5 @@ def saved_run(run_dir: Path, budget: str | None = None, more: float = 0) -> dict
         "checkpoint": str(checkpoint) if checkpoint.exists() else None,
         "feedback_log": str(run_dir / "feedback.jsonl"),
         "resume": f"python train.py resume={run_dir}{extra}",
+        "summary_file": str(run_dir / SUMMARY_NAME),
     }

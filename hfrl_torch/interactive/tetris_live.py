@@ -157,6 +157,7 @@ class TetrisPage:
         self.rounds = int(rounds)
         self.clock = clock
         self.games = 0
+        self._game_lines: int | None = None  # lines of the watched game in progress (None: none since shown)
         self._round_start: float | None = None
         # the last rounds' wall times, apart for rounds the person watched and rounds that practised alone:
         # a watched round lasts a paced game, one alone a moment, so the time left depends on which come
@@ -168,6 +169,7 @@ class TetrisPage:
         if self._round_start is None:
             self._round_start = self.clock()
         self.games += 1
+        self._game_lines = 0
         self.session.set_live(True)
         self._progress(round_index)
 
@@ -185,6 +187,7 @@ class TetrisPage:
             rounds=self.rounds,
         )
         self.session.publish(frame)
+        self._game_lines = int(frame["lines"])
         label = f"{frame['label']} (placement {frame['placement']} of game {self.games})"
         self.session.shown(now, round_index, int(td[keys.PIECES_PLACED].sum()), label)
 
@@ -193,9 +196,11 @@ class TetrisPage:
         if self._round_start is None:
             self._round_start = self.clock()
         self.session.set_live(False)
-        self.session.publish(
-            {"type": "status", "phase": "practice", "round": round_index + 1, "rounds": self.rounds}
-        )
+        status = {"type": "status", "phase": "practice", "round": round_index + 1, "rounds": self.rounds}
+        if self._game_lines is not None:  # the person's game just ended: the page says how it went
+            status["game_over"] = {"game": self.games, "lines": self._game_lines}
+            self._game_lines = None
+        self.session.publish(status)
         self._progress(round_index)
 
     def point(self, round_index: int, lines: float, taught: bool) -> None:

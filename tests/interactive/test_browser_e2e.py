@@ -15,6 +15,7 @@ Needs Debian's chromium (``/usr/bin/chromium``, installed by ``.ci/run``) and th
 from __future__ import annotations
 
 import contextlib
+import json
 import re
 import signal
 import subprocess
@@ -43,6 +44,12 @@ REACTION_S = 0.3
 # test-side only: remember every frame the page receives and every key pressed, with their times
 RECORD_FRAMES = """
 window.__frames = [];
+window.__covers = [];  // every text the board's cover showed
+new MutationObserver(() => {
+  const c = document.getElementById("cover-text");
+  const last = window.__covers[window.__covers.length - 1];
+  if (c && c.textContent && last !== c.textContent) window.__covers.push(c.textContent);
+}).observe(document, { subtree: true, childList: true, characterData: true });
 window.__keys = [];
 window.__opened = 0;
 document.addEventListener("keydown", (e) => window.__keys.push(performance.now()), true);
@@ -310,6 +317,10 @@ def test_tetris_presses_are_filed_and_counted_as_saved_through_reconnects_and_fi
         presses.append(_press_safely(page, "z"))
         (tmp_path / "page.png").write_bytes(page.screenshot())
 
+        page.wait_for_function(  # since the reload, a game of the person's ended and the page said how
+            "window.__covers.some((c) => /^Game over: \\d+ lines? in game \\d+\\. Practising/.test(c))",
+            timeout=60_000,
+        )
         asked: list[str] = []
         page.once("dialog", lambda d: (asked.append(d.message), d.dismiss()))
         page.click("#finish")  # asked first; "Cancel" leaves the run going
@@ -328,8 +339,18 @@ def test_tetris_presses_are_filed_and_counted_as_saved_through_reconnects_and_fi
         change = page.inner_text("#summary-change")
         assert any(p[2] >= 0.5 for p in points) and "lines per test game. With you (filled)" in change
         assert page.locator("#summary-list li").count() == len(presses)
+        assert f"This summary: {run_dir / 'teaching_summary.json'}" in saved
+        assert "reloading it or opening it again will not show this summary" in page.inner_text(
+            "#summary-keep"
+        )
+        with page.expect_download() as download:
+            page.click("#summary-download")
+        copy = json.loads(Path(download.value.path()).read_text())
         _fits(page, 390)
         assert proc.wait(timeout=60) == 0
+    kept = json.loads((run_dir / "teaching_summary.json").read_text())
+    assert kept["given"] == copy["given"] == len(presses) and kept["reason"] == "finished_by_you"
+    assert [p["filed"] for p in kept["presses"]] == [p["filed"] for p in copy["presses"]]
 
     events = load_feedback_log(run_dir / "feedback.jsonl")
     assert len(events) == len(presses) and len({e.id for e in events}) == len(events)

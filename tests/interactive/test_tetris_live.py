@@ -102,16 +102,18 @@ def test_the_page_is_told_rounds_games_and_what_is_left():
     page.start_game(0)
     assert session.live and page.games == 1
     page.practising(0)
-    assert not session.live and session.latest()[1] == {
+    assert not session.live and session.latest()[1] == {  # the person's game is over: said with its lines
         "type": "status",
         "phase": "practice",
         "round": 1,
         "rounds": 4,
+        "game_over": {"game": 1, "lines": 0},
     }
     wall[0] = 16.0
     page.point(0, 3.5, taught=True)
     wall[0] = 18.0
     page.practising(1)
+    assert "game_over" not in session.latest()[1]  # a round alone: no game of the person's ended
     page.point(1, 5.0, taught=False)
     assert session.curve == [[1.0, 3.5, 1.0], [2.0, 5.0, 0.0]]
     # no page is open: the rounds to come practise alone, at the 2 s the one alone took

@@ -89,7 +89,8 @@ function coverText() {
   if (S.view === "tetris" && !S.live) {
     const p = S.progress || {};
     const round = p.total === undefined ? "" : ` (round ${Math.min(p.done + 1, p.total)} of ${p.total})`;
-    return `Practising on its own${round}. Your next game starts when this round ends.`;
+    const over = S.over ? `Game over: ${S.over.lines} line${S.over.lines === 1 ? "" : "s"} in game ${S.over.game}. ` : "";
+    return `${over}Practising on its own${round}. Your next game starts when this round ends.`;
   }
   return null;
 }
@@ -379,11 +380,22 @@ function showSummary(m) {
   $("summary-change").textContent = change;
   const saved = $("summary-saved");
   saved.replaceChildren();
-  [["Run", m.run_dir], ["Checkpoint", m.checkpoint || "none yet"], ["Your presses", m.feedback_log]].forEach(([k, v]) => {
+  [["Run", m.run_dir], ["Checkpoint", m.checkpoint || "none yet"], ["Your presses", m.feedback_log],
+    ["This summary", m.summary_file]].forEach(([k, v]) => {
     if (v === undefined) return;
     const li = document.createElement("li"); li.textContent = `${k}: ${v}`; saved.appendChild(li);
   });
   $("summary-resume").textContent = m.resume || "";
+  $("summary-keep").textContent = "The run has stopped serving this page: reloading it or opening it again " +
+    "will not show this summary. " + (m.summary_file ? "It is saved in the file above; " : "") +
+    "Download saves a copy from here.";
+  $("summary-download").onclick = () => {
+    const a = document.createElement("a");
+    a.href = URL.createObjectURL(new Blob([JSON.stringify(m, null, 2)], { type: "application/json" }));
+    a.download = "teaching_summary.json";
+    a.click();
+    URL.revokeObjectURL(a.href);
+  };
   const list = $("summary-list");
   list.replaceChildren();
   m.presses.forEach((p) => {
@@ -424,7 +436,8 @@ function onMessage(ev) {
     if (m.weight_name) $("weight-label").textContent = m.weight_name;
     $("weight-sentence").textContent = m.weight_sentence || "";
   } else if (m.type === "settings") showSettings(m);
-  else if (m.type === "tetris") { S.frame = m; drawTetris(m); }
+  else if (m.type === "status") { S.over = m.game_over || null; render(); }
+  else if (m.type === "tetris") { S.frame = m; S.over = null; drawTetris(m); }
   else if (m.type === "keepaway") { S.frame = m; drawKeepaway(m); }
   else if (m.type === "curve") { S.curve = m.curve; drawCurve(); }
   else if (m.type === "role") { S.role = m.role; render(); }
