@@ -77,6 +77,14 @@ def tetris_frame(td: TensorDictBase, episode: int, weight: float, **extra: Any) 
     return frame
 
 
+def action_label(td: TensorDictBase, action: int) -> str:
+    """Placement ``action`` of the piece in ``td`` in the page's words ("S at column 3, rotation 1")."""
+    p = int(td[keys.PIECE][0])
+    table = placement_table(td[keys.BOARD].shape[-1])
+    column, orient = int(table.column[p, action]), int(table.orient[p, action])
+    return f"{PIECE_NAMES[p]} at column {column + 1}, rotation {orient}"
+
+
 class BrowserTetrisTrainer(QueueTrainer):
     """A person in the browser as the trainer of the watched Tetris board.
 
@@ -157,6 +165,7 @@ class TetrisPage:
         self.rounds = int(rounds)
         self.clock = clock
         self.games = 0
+        self._steered = [0, 0]
         self._game_lines: int | None = None  # lines of the watched game in progress (None: none since shown)
         self._round_start: float | None = None
         # the last rounds' wall times, apart for rounds the person watched and rounds that practised alone:
@@ -170,12 +179,18 @@ class TetrisPage:
             self._round_start = self.clock()
         self.games += 1
         self._game_lines = 0
+        self._steered = [0, 0]  # placements of this game the teaching changed, and placements
         self.session.set_live(True)
         self._progress(round_index)
 
-    def placed(self, td: TensorDictBase, round_index: int, now: float, weight: float) -> None:
+    def placed(
+        self, td: TensorDictBase, round_index: int, now: float, weight: float, alone: int | None = None
+    ) -> None:
         """Show the placement of ``td`` (made at ``now`` on the loop's clock) and record it as what a press
-        judges: the session files presses under it."""
+        judges: the session files presses under it. ``alone``: the placement the environment's values alone
+        would have chosen, where it is better by them than the one made (the teaching changed the move)."""
+        self._steered[1] += 1
+        self._steered[0] += alone is not None
         frame = tetris_frame(
             td,
             round_index,
@@ -185,6 +200,8 @@ class TetrisPage:
             placement=int(td[keys.PIECES_PLACED].sum()) + 1,
             round=round_index + 1,
             rounds=self.rounds,
+            without_you=None if alone is None else action_label(td, alone),
+            steered=list(self._steered),
         )
         self.session.publish(frame)
         self._game_lines = int(frame["lines"])

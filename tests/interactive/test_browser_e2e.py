@@ -291,6 +291,8 @@ def test_tetris_presses_are_filed_and_counted_as_saved_through_reconnects_and_fi
             assert (seen["game"], seen["placement"]) != (p["now"]["game"], p["now"]["placement"])
 
         _numbered(page, 10)
+        steered = page.inner_text("#steered")  # what the teaching did to the agent's moves, in numbers
+        assert re.search(r"Your teaching changed (\d+) of its (\d+) moves this game\.$", steered), steered
         _unmoved(page, ["p", "p", "h", "h"])  # paused, away: other words, same buttons
         _fits(page, 390)
         _numbered(page, 10)

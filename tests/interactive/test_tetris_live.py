@@ -173,3 +173,35 @@ def test_a_taught_ce_round_files_each_press_under_the_placement_shown_before_it(
     assert [e.time for e in events] == [1.0, 1.5, 2.25]  # capped at the next placement's start
     assert session.curve == [[1.0, final["eval/mean_policy_lines_mean"], 1.0]]
     assert session.ending == "stopping" and session.queue.closed  # closed by the loop, as after a run
+
+
+def test_a_move_is_said_to_be_changed_by_the_teaching_only_where_the_environment_alone_prefers_another():
+    values = torch.tensor([[1.0, 3.0, 2.0, 5.0]], dtype=torch.float64)
+    td = TensorDict(
+        {keys.ENV_VALUES: values, keys.ACTION_MASK: torch.tensor([[True, True, True, False]])}, batch_size=[1]
+    )
+    changed = tetris_cem.CEMLearner._changed_by_teaching
+    assert changed(td, torch.tensor([2])) == 1  # the masked 5.0 is no choice; 3.0 beats the 2.0 played
+    assert changed(td, torch.tensor([1])) is None  # the environment's own choice
+    td[keys.ENV_VALUES] = torch.tensor([[1.0, 3.0, 3.0, 0.0]], dtype=torch.float64)
+    assert changed(td, torch.tensor([2])) is None  # a tie is not a change
+
+
+def test_the_page_counts_the_moves_the_teaching_changed(tmp_path):
+    _, session = _fake()
+    page = TetrisPage(session, rounds=2)
+    env = TetrisEnv(batch=1, rules=TetrisRules(width=6, height=12), features="bt", max_pieces=30)
+    td = env.reset()
+    page.start_game(0)
+    for alone in [None, 4, None]:
+        action = td[keys.ACTION_MASK].to(torch.int64).argmax(-1)
+        td.set(keys.ACTION, action)
+        td = env.step(td)
+        page.placed(td, 0, 0.0, weight=0.5, alone=alone)
+        frame = session.latest()[1]
+        assert (frame["without_you"] is None) == (alone is None)
+        td = td["next"]
+    assert frame["steered"] == [1, 3] and session.latest()[1]["without_you"] is None
+    page.start_game(1)
+    page.placed(env.step(td.set(keys.ACTION, td[keys.ACTION_MASK].to(torch.int64).argmax(-1))), 1, 0.0, 0.5)
+    assert session.latest()[1]["steered"] == [0, 1]  # counted per game

@@ -309,6 +309,7 @@ class CEMLearner(Learner):
             td.set(keys.ENV_VALUES, (feats * self.value_weights).sum(-1))
             td.set(keys.HUMAN_VALUES, self.human.model(placement_deltas(td)))
             action = self.choose(td).get(keys.ACTION)
+            alone = self._changed_by_teaching(td, action) if self.page is not None else None
             events = self.trainer.give(td, action, now, episode_t)
             self.human.record(td, action, now)
             self.channel.put_events(events)
@@ -320,7 +321,8 @@ class CEMLearner(Learner):
             td = env.step(td)
             nxt = td["next"]
             if self.page is not None:
-                self.page.placed(td, episode, now, weight=float(td[keys.FUSION_WEIGHT].reshape(-1)[0]))
+                weight = float(td[keys.FUSION_WEIGHT].reshape(-1)[0])
+                self.page.placed(td, episode, now, weight=weight, alone=alone)
             totals["env_return"] += float(nxt[keys.ENV_REWARD].sum())
             totals["fused_return"] += float(nxt[keys.REWARD].sum())
             totals["placements"] += 1
@@ -338,6 +340,14 @@ class CEMLearner(Learner):
             self.human.learn(self.channel.deliver(math.inf))
         self.clock = now
         return totals
+
+    @staticmethod
+    def _changed_by_teaching(td: TensorDictBase, action: torch.Tensor) -> int | None:
+        """The placement the environment's values alone choose, where it beats the fused choice by them
+        (the teaching changed the move; None where it did not), for the page."""
+        values = td[keys.ENV_VALUES][0].masked_fill(~td[keys.ACTION_MASK][0], -math.inf)
+        best = int(values.argmax())
+        return best if float(values[best]) > float(values[int(action.reshape(-1)[0])]) + 1e-9 else None
 
     def _learn_due(self, td: TensorDictBase, now: float) -> None:
         td.update(self.channel.deliver(now))

@@ -228,6 +228,8 @@ function drawTetris(f) {
   $("game").textContent = `game ${f.game}, placement ${f.placement}`;
   $("score").textContent = `${f.lines} this game`;
   $("action").textContent = f.cleared > 0 ? `${f.action}: cleared ${f.cleared}` : f.action;
+  $("steered").textContent = (f.without_you ? `Your teaching changed this move: on its own it would have played ${f.without_you}. ` : "") +
+    (f.steered ? `Your teaching changed ${f.steered[0]} of its ${f.steered[1]} moves this game.` : "");
   $("weight").textContent = f.weight === null || f.weight === undefined ? "-" : f.weight.toFixed(2);
 }
 
@@ -248,6 +250,7 @@ function arrow(g, [x0, y0], [tx, ty]) {
 
 function drawKeepaway(f) {
   $("columns").hidden = true;
+  $("steered").textContent = "";
   const c = $("view");
   if (c.width !== 400 || c.height !== 400) { c.width = 400; c.height = 400; }
   const g = c.getContext("2d");
