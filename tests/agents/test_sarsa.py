@@ -261,7 +261,7 @@ def test_smdp_rewards_are_per_keeper(tmp_path, run_learner, sync, per_learner):
 
 def test_short_learning_run_beats_the_random_policy(tmp_path, run_learner):
     # 500 ms decisions (the thesis's setting) and one weight table shared by the keepers of all 32
-    # fields, so that about one simulated hour of experience, a minute of CPU, reaches one learner.
+    # fields, so that about half a simulated hour of experience, half a minute of CPU, reaches one learner.
     random = play_benchmark_policy("random", 400, batch=200, seed=7, progress=False, decision_period_cycles=5)
     fields = 32
 
@@ -277,13 +277,15 @@ def test_short_learning_run_beats_the_random_policy(tmp_path, run_learner):
         f"agent.fields_per_learner={fields}",
         "domain.decision_period_cycles=5",
     ]
-    over += [f"agent.hours={1200 * fields / 36000}", "seed=7", "agent.log_minutes=60"]
+    over += [f"agent.hours={600 * fields / 36000}", "seed=7", "agent.log_minutes=60"]
     learner, _ = run_learner(tmp_path, *over, prepare=one_shared_table)
     table = learner.records.table.double()
     table[:, 2] = table[:, 2] / fields  # the field's own clock (the learner's is the sum of its 32 fields')
-    late = table[table[:, 2] >= 800, 3] / 10.0  # episodes that ended in the last third
-    assert late.numel() >= 50
-    assert float(late.mean()) > random["ci95_high"], (float(late.mean()), random["mean_s"])  # 9.9 s vs 6.1 s
+    late = table[table[:, 2] >= 400, 3] / 10.0  # episodes that ended in the last third
+    assert late.numel() >= 50  # 97 at seed 7
+    # 8.0 s vs the random policy's 6.2 s (upper 95 % bound 6.5 s) at seed 7; 9.5 s at seed 8
+    print(f"late mean {float(late.mean()):.2f} s vs random's ci95_high {random['ci95_high']:.2f} s")
+    assert float(late.mean()) > random["ci95_high"], (float(late.mean()), random["mean_s"])
 
 
 def _cfg(*overrides: str):

@@ -4,11 +4,10 @@ from __future__ import annotations
 
 import csv
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from script_runner import run_script
 
 from hfrl_torch.experiment.aggregate import find_runs, group_runs, permutation_p, report
 
@@ -55,18 +54,7 @@ def test_permutation_p_values():
 
 def test_evaluate_runs_writes_csv_markdown_plot_and_reports_crashed_runs(tmp_path):
     _sweep(tmp_path / "sweep")
-    out = subprocess.run(
-        [
-            sys.executable,
-            str(ROOT / "evaluate.py"),
-            f"runs={tmp_path / 'sweep'}",
-            f"out={tmp_path / 'report'}",
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    out = run_script("evaluate.py", f"runs={tmp_path / 'sweep'}", f"out={tmp_path / 'report'}", timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     report_dir = tmp_path / "report"
     rows = list(csv.DictReader((report_dir / "summary.csv").open()))
@@ -79,13 +67,7 @@ def test_evaluate_runs_writes_csv_markdown_plot_and_reports_crashed_runs(tmp_pat
 
 def test_unknown_baseline_fails_with_one_line(tmp_path):
     _sweep(tmp_path)
-    out = subprocess.run(
-        [sys.executable, str(ROOT / "evaluate.py"), f"runs={tmp_path}", "baseline=nothing"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    out = run_script("evaluate.py", f"runs={tmp_path}", "baseline=nothing", timeout=300)
     assert out.returncode == 2 and "baseline='nothing' is not a condition here" in out.stderr
 
 

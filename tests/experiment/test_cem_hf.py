@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from script_runner import run_script
 
 from hfrl_torch.common.checkpoint import load_checkpoint
 from hfrl_torch.experiment.cli import compose_config
@@ -90,15 +91,9 @@ def test_annealed_weight_decays_by_its_factor_each_iteration(tmp_path):
     assert [r["fusion/weight"] for r in _curves(tmp_path)] == [1.0, 0.5, 0.25]
 
 
-def _run(script: str, *args: str, **kw) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, str(ROOT / script), *args],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=300,
-        **kw,
-    )
+def _run(script: str, *args: str) -> subprocess.CompletedProcess:
+    """``python <script> <args>`` as a user types it, forked from a process that has made its imports."""
+    return run_script(script, *args, timeout=300)
 
 
 def test_train_exponential_then_evaluate_then_replay_the_log(tmp_path):

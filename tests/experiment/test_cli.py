@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import torch
+from script_runner import run_script
 
 from hfrl_torch.common.checkpoint import checksum
 
@@ -23,9 +23,8 @@ TINY = [
 
 
 def run(script: str, *args: str, cwd: Path = ROOT) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, str(ROOT / script), *args], cwd=cwd, capture_output=True, text=True, timeout=300
-    )
+    """``python <script> <args>`` as a user types it, forked from a process that has made its imports."""
+    return run_script(script, *args, cwd=cwd, timeout=300)
 
 
 @pytest.fixture(scope="module")

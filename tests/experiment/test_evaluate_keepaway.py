@@ -5,11 +5,11 @@ from __future__ import annotations
 import copy
 import json
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import torch
+from script_runner import run_script
 
 from hfrl_torch.agents.sarsa.policy import load_keeper_policy
 from hfrl_torch.common.checkpoint import load_checkpoint, save_checkpoint
@@ -285,13 +285,8 @@ def test_bad_checkpoints_give_one_line_errors(plain, tmp_path):
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, str(ROOT / "evaluate.py"), *args],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    """``python evaluate.py <args>`` as a user types it, forked from a process that has made its imports."""
+    return run_script("evaluate.py", *args, timeout=300)
 
 
 def test_the_cli_plays_a_run_directory(plain):

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 from omegaconf import OmegaConf
+from script_runner import run_script
 
 ROOT = Path(__file__).resolve().parents[2]
 TINY = [
@@ -23,7 +24,11 @@ TINY = [
 ]
 
 
-def _run(script: str, *args: str) -> subprocess.CompletedProcess:
+def _run(script: str, *args: str, fresh: bool = False) -> subprocess.CompletedProcess:
+    """``python <script> <args>`` as a user types it, forked from a process that has made its imports;
+    ``fresh``: in a new interpreter (joblib's loky workers take minutes to start from a forked child)."""
+    if not fresh:
+        return run_script(script, *args, timeout=600)
     return subprocess.run(
         [sys.executable, str(ROOT / script), *args], cwd=ROOT, capture_output=True, text=True, timeout=600
     )
@@ -42,6 +47,7 @@ def test_joblib_multirun_is_aggregated_into_the_expected_table(tmp_path):
         "seed=0,1",
         *TINY,
         f"hydra.sweep.dir={sweep}",
+        fresh=True,
     )
     assert out.returncode == 0, out.stderr[-3000:]
     assert sorted(p.name for p in sweep.iterdir() if p.is_dir()) == ["0", "1", "2", "3"]
