@@ -27,6 +27,7 @@ from hfrl_torch.common.checkpoint import load_checkpoint
 from hfrl_torch.common.errors import UserError
 from hfrl_torch.experiment import resolvers  # noqa: F401  (the config's resolvers, before any composing)
 from hfrl_torch.experiment.config import resume_config, validate_train
+from hfrl_torch.fusion.weights import UNWEIGHTED
 
 CONF_DIR = Path(__file__).resolve().parent.parent.parent / "conf"
 CHECKED = "HFRL_TORCH_CHECKED"  # set once every job of this command was checked up front
@@ -124,8 +125,16 @@ def precheck(argv: list[str], config_name: str, validate: Callable[[DictConfig],
     check_group_choices(args.overrides)
     try:
         jobs, complete = job_overrides(args.overrides, config_name, bool(args.multirun))
+        runs: dict[str, int] = {}
         for i, job in enumerate(jobs):
             cfg, hydra = _split(config_name, job)
+            same = runs.setdefault(_run_key(cfg), i)
+            if same != i:
+                fail(
+                    f"jobs {same} ({' '.join(jobs[same])}) and {i} ({' '.join(job)}) are the same run"
+                    f"{_why_same(cfg)}: a sweep of duplicates counts one learner twice; sweep the setting "
+                    "in its own command over the options it changes"
+                )
             resuming = bool(cfg.get("resume"))
             if resuming:
                 checkpoint = load_checkpoint(cfg.resume)
@@ -142,6 +151,21 @@ def precheck(argv: list[str], config_name: str, validate: Callable[[DictConfig],
         fail(" ".join(str(exc).strip().splitlines()[:2]) or type(exc).__name__)
     if complete:  # every job the launcher will run was checked here
         os.environ[CHECKED] = "1"
+
+
+def _run_key(cfg: DictConfig) -> str:
+    """What defines a run: the job's config, less the settings its choices leave unused (the weight of a
+    scheme that fuses nothing)."""
+    copy = OmegaConf.to_container(cfg, resolve=False)
+    fusion = copy.get("fusion") if isinstance(copy, dict) else None
+    if isinstance(fusion, dict) and fusion.get("name") in UNWEIGHTED:
+        fusion.pop("weight", None)
+    return OmegaConf.to_yaml(OmegaConf.create(copy))
+
+
+def _why_same(cfg: DictConfig) -> str:
+    name = OmegaConf.select(cfg, "fusion.name", default=None)
+    return f" (fusion={name} uses no fusion.weight)" if name in UNWEIGHTED else ""
 
 
 def checked() -> bool:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 from pathlib import Path
 
@@ -11,6 +12,8 @@ import torch
 from script_runner import run_script
 
 from hfrl_torch.common.checkpoint import checksum
+from hfrl_torch.experiment import cli
+from hfrl_torch.experiment.config import validate_train
 
 ROOT = Path(__file__).resolve().parents[2]
 TINY = [
@@ -94,6 +97,20 @@ def test_bad_input_fails_with_one_clear_line(args, message, tmp_path):
     err = out.stderr.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: ") and message in err[0], out.stderr
     assert not (tmp_path / "checkpoints").exists()
+
+
+def test_a_sweep_whose_jobs_are_the_same_run_is_refused_before_anything_runs(tmp_path, monkeypatch):
+    """fusion=none fuses nothing, so fusion.weight=0.3 and =adaptive are one run twice; launched, the
+    duplicates would be counted as two learners by evaluate.py."""
+    args = ["-m", "agent=pg", "fusion=none,linear", "fusion.weight=0.3,adaptive", "agent.games=1"]
+    out = run("train.py", *args, f"hydra.sweep.dir={tmp_path}")
+    err = out.stderr.strip().splitlines()
+    assert out.returncode == 2 and len(err) == 1, out.stderr
+    assert "jobs 0 (" in err[0] and "and 1 (" in err[0] and "fusion=none uses no fusion.weight" in err[0]
+    assert not any(tmp_path.iterdir())
+    monkeypatch.setenv(cli.CHECKED, "")  # precheck marks the jobs it checked in the environment
+    cli.precheck(["-m", "fusion=linear", "fusion.weight=0.3,adaptive"], "train", validate_train)
+    assert os.environ[cli.CHECKED] == "1"  # a weight swept over a scheme that uses it: two runs, no error
 
 
 def test_corrupt_and_wrong_domain_checkpoints_fail_cleanly(trained, tmp_path):
