@@ -354,6 +354,7 @@ def report(
     how long each group took to reach that level (paired differences and p-values likewise)."""
     rows: list[dict[str, object]] = []
     ref = groups[baseline]
+    smallest = (1.0, 0)  # the smallest p the exact sign-flip test can give at the fewest pairs compared
     md = [
         "| condition | runs | metric | final mean | 95 % interval | difference to reference "
         "| p (permutation) |",
@@ -371,10 +372,12 @@ def report(
             paired = sorted(finals) == sorted(ref_finals)
             a = [finals[k] for k in sorted(finals)]
             b = [ref_finals[k] for k in sorted(ref_finals)]
-            pv = permutation_p(a, b, paired)
             diff = f"{s['mean'] - _ci(b)['mean']:+.2f}"
-            p = f"{pv:.3f}"
             kind = "paired" if paired else "unpaired"
+            if min(len(a), len(b)) >= 2:  # one run per condition: no spread, so no test
+                p = f"{permutation_p(a, b, paired):.3f}"
+                if paired and len(a) <= 16:
+                    smallest = min(smallest, (2 / 2 ** len(a), len(a)))
         rows.append(
             {
                 "condition": g.label,
@@ -391,12 +394,22 @@ def report(
                 "test": kind,
             }
         )
+        if s["n"] < 2:  # an interval of one run would have zero width: none is given
+            rows[-1]["ci95_low"] = rows[-1]["ci95_high"] = ""
         ref_mark = " (reference)" if g is ref else ""
+        interval = f"{s['ci95_low']:.2f} .. {s['ci95_high']:.2f}" if s["n"] >= 2 else "none (1 run)"
+        test = f"{p} {kind}" if p else ("none (1 run)" if kind else "")
         md.append(
             f"| {g.label}{ref_mark} | {len(g.runs)} | {g.measured} "
-            f"| {s['mean']:.2f} | {s['ci95_low']:.2f} .. {s['ci95_high']:.2f} | {diff} "
-            f"| {p}{' ' + kind if kind else ''} |"
+            f"| {s['mean']:.2f} | {interval} | {diff} | {test} |"
         )
+    if smallest[1] and smallest[0] > 0.05:
+        md += [
+            "",
+            f"With {smallest[1]} paired runs the exact sign-flip test cannot give a p below "
+            f"{smallest[0]:.3f} (2 of its 2^{smallest[1]} sign patterns are always as extreme as the "
+            "data): no difference can reach p < 0.05 with fewer than 6 pairs.",
+        ]
     if reach is not None:
         md += ["", _reach_table(groups, ref, reach, rows)]
     if any(_has_effort(g) for g in groups):

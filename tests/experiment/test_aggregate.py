@@ -46,6 +46,21 @@ def test_groups_by_what_differs_and_compares_paired(tmp_path):
     assert "(reference)" in md
 
 
+def test_one_run_per_condition_gets_no_interval_or_p_and_few_pairs_are_said_to_be_few(tmp_path):
+    for seed, (a, b) in enumerate([(10, 30), (20, 50), (30, 40)]):
+        base = f"seed: {seed}\nagent:\n  name: cem\n"
+        _run(tmp_path / "three", f"{seed}", base + "fusion:\n  name: none\n", [1, a])
+        _run(tmp_path / "three", f"{seed + 10}", base + "fusion:\n  name: linear\n", [2, b])
+    rows, md = report(group_runs(find_runs([tmp_path / "three"])[0]))
+    assert rows[1]["p_value"] == "0.250" and rows[1]["test"] == "paired"  # all three pairs agree
+    assert "With 3 paired runs the exact sign-flip test cannot give a p below 0.250" in md
+    _run(tmp_path / "one", "0", "seed: 0\nfusion:\n  name: none\n", [1, 10])
+    _run(tmp_path / "one", "1", "seed: 0\nfusion:\n  name: linear\n", [2, 30])
+    rows, md = report(group_runs(find_runs([tmp_path / "one"])[0]))
+    assert rows[1]["p_value"] == "" and rows[1]["ci95_low"] == "" and rows[1]["difference"] == "+20.00"
+    assert "| none (1 run) | +20.00 | none (1 run) |" in md and "1.000" not in md
+
+
 def test_permutation_p_values():
     assert permutation_p([1.0, 2.0, 3.0], [1.0, 2.0, 3.0], paired=True) == 1.0
     assert permutation_p([10.0] * 6, [0.0] * 6, paired=True) == pytest.approx(2 / 64)
