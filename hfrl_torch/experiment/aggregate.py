@@ -584,6 +584,19 @@ def plot_effort(groups: list[Group], path: Path) -> None:
     plt.close(fig)
 
 
+def baseline_index(base: str, labels: list[str]) -> int:
+    """The condition ``baseline=`` names: its label ("fusion.name=linear", quoted on a command line for its
+    ``=``) or, where that is unambiguous, the label's values alone (``baseline=linear``)."""
+    if base in labels:
+        return labels.index(base)
+    values = [", ".join(part.partition("=")[2] for part in label.split(", ")) for label in labels]
+    hits = [i for i, v in enumerate(values) if v == base]
+    if len(hits) == 1:
+        return hits[0]
+    allowed = "; ".join(f"{v} ({label})" for v, label in zip(values, labels, strict=True))
+    raise ConfigError(f"baseline={base!r} is not one condition here; allowed: {allowed}")
+
+
 def aggregate(cfg: DictConfig) -> dict[str, object]:
     """``evaluate.py runs=...``: read, group, compare, write CSV, markdown, plot; print the markdown."""
     raw = cfg.runs
@@ -613,12 +626,7 @@ def aggregate(cfg: DictConfig) -> dict[str, object]:
         g.last, g.window = last, window
     labels = [g.label for g in groups]
     base = cfg.get("baseline")
-    if base is None:
-        baseline = 0
-    elif str(base) in labels:
-        baseline = labels.index(str(base))
-    else:
-        raise ConfigError(f"baseline={base!r} is not a condition here; allowed: {', '.join(labels)}")
+    baseline = 0 if base is None else baseline_index(str(base), labels)
     reach = cfg.get("reach")
     if reach is not None and (isinstance(reach, bool) or not isinstance(reach, (int, float))):
         raise ConfigError(f"reach={reach!r} is invalid: must be a number (the level to time)")

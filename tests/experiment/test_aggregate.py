@@ -83,7 +83,11 @@ def test_evaluate_runs_writes_csv_markdown_plot_and_reports_crashed_runs(tmp_pat
 def test_unknown_baseline_fails_with_one_line(tmp_path):
     _sweep(tmp_path)
     out = run_script("evaluate.py", f"runs={tmp_path}", "baseline=nothing", timeout=300)
-    assert out.returncode == 2 and "baseline='nothing' is not a condition here" in out.stderr
+    assert out.returncode == 2 and "baseline='nothing' is not one condition here" in out.stderr
+    assert "allowed: none (fusion.name=none); linear (fusion.name=linear)" in out.stderr
+    out = run_script("evaluate.py", f"runs={tmp_path}", "baseline=linear", timeout=300)  # no nested quotes
+    assert out.returncode == 0, out.stderr
+    assert "| fusion.name=linear (reference) |" in (tmp_path / "summary.md").read_text()
 
 
 def test_reach_times_each_condition_and_counts_never(tmp_path):

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 import torch
+import yaml
 from script_runner import run_script
 
 from hfrl_torch.common.checkpoint import checksum
@@ -275,3 +276,13 @@ def test_an_initial_trust_outside_zero_one_is_refused(tmp_path):
     out = run("train.py", "fusion=linear", "fusion.initial_trust=5", f"hydra.run.dir={tmp_path / 'r'}")
     assert out.returncode == 2 and "fusion.initial_trust=5 is invalid" in out.stderr
     assert not (tmp_path / "r").exists()
+
+
+def test_evaluate_help_explains_every_one_of_its_options():
+    """Every key of conf/evaluate.yaml (and the domain group) has its line in ``evaluate.py --help``."""
+    out = run("evaluate.py", "--help")
+    assert out.returncode == 0, out.stderr
+    options = {line.split()[0] for line in out.stdout.splitlines() if line.startswith("  ") and line.split()}
+    config = yaml.safe_load((ROOT / "conf" / "evaluate.yaml").read_text())
+    keys = {k for k in config if k not in ("defaults", "hydra")} | {"domain"}
+    assert keys <= options, sorted(keys - options)
