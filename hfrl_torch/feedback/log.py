@@ -285,6 +285,19 @@ def _line(obj: dict[str, Any]) -> bytes:
     return line
 
 
+def drop_partial_line(path: Path) -> bool:
+    """Cut an incomplete last line (no newline: what a write cut short by a kill leaves) off an append-only
+    JSON-lines file, fsync'd; returns whether there was one."""
+    data = path.read_bytes()
+    if not data or data.endswith(b"\n"):
+        return False
+    with open(path, "r+b") as f:
+        f.truncate(data.rfind(b"\n") + 1)
+        f.flush()
+        os.fsync(f.fileno())
+    return True
+
+
 class FeedbackLog:
     """Append-only feedback log for one session; every ``append`` is flushed and fsync'd before it returns.
 
@@ -335,11 +348,7 @@ class FeedbackLog:
                 f"{self.path}:{e.line}: dropping an incomplete last line left by an interrupted write",
                 stacklevel=3,
             )
-            data = self.path.read_bytes()
-            with open(self.path, "r+b") as f:
-                f.truncate(data.rfind(b"\n") + 1)
-                f.flush()
-                os.fsync(f.fileno())
+            drop_partial_line(self.path)
             return contents.last_seq
         with open(self.path, "r+b") as f:
             f.seek(-1, os.SEEK_END)

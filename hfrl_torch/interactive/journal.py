@@ -30,7 +30,7 @@ from pathlib import Path
 from hfrl_torch.common.bounded_json import JSONBoundsError, loads_bounded
 from hfrl_torch.common.errors import UserError
 from hfrl_torch.feedback.events import FeedbackEvent
-from hfrl_torch.feedback.log import FeedbackLog
+from hfrl_torch.feedback.log import FeedbackLog, drop_partial_line
 from hfrl_torch.interactive.timeline import Shown, credit_time
 
 __all__ = ["JOURNAL_NAME", "JournalEntry", "PressJournal", "PressJournalError", "browser_session"]
@@ -146,7 +146,8 @@ class PressJournal:
         self.recovered = self._recover(entries, log, reaction_s, discrete)
         last = max([e.n for e in entries], default=-1)
         self._next = max(last, log.last_seq.get(self.session, -1)) + 1
-        self._cut_partial_line()
+        if self.path.exists():
+            drop_partial_line(self.path)
         self._fd: int | None = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
         self._write(_line({"schema": SCHEMA, "version": VERSION, "created": time.time()}))
 
@@ -173,16 +174,6 @@ class PressJournal:
                 stacklevel=3,
             )
         return written
-
-    def _cut_partial_line(self) -> None:
-        """Drop an incomplete last line (what a write cut short by a kill leaves)."""
-        if not self.path.exists():
-            return
-        data = self.path.read_bytes()
-        if data and not data.endswith(b"\n"):
-            with open(self.path, "r+b") as f:
-                f.truncate(data.rfind(b"\n") + 1)
-                os.fsync(f.fileno())
 
     def _write(self, line: bytes) -> None:
         if self._fd is None:

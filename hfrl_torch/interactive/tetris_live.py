@@ -39,6 +39,14 @@ def landing(before: torch.Tensor, piece: int, action: int, table: PlacementTable
     return [[land + r, c] for r, c in cells]
 
 
+def action_label(td: TensorDictBase, action: int) -> str:
+    """Placement ``action`` of the piece in ``td`` in the page's words ("S at column 3, rotation 1")."""
+    p = int(td[keys.PIECE][0])
+    table = placement_table(td[keys.BOARD].shape[-1])
+    column, orient = int(table.column[p, action]), int(table.orient[p, action])
+    return f"{PIECE_NAMES[p]} at column {column + 1}, rotation {orient}"
+
+
 def tetris_frame(td: TensorDictBase, episode: int, weight: float, **extra: Any) -> dict[str, Any]:
     """What the page draws after a placement: the board, the cells just placed, the rows it cleared (with
     the board before they went), the action and its number in the game; ``extra`` is added as is."""
@@ -46,7 +54,6 @@ def tetris_frame(td: TensorDictBase, episode: int, weight: float, **extra: Any) 
     after = td["next", keys.BOARD][0]
     p, a = int(td[keys.PIECE][0]), int(td[keys.ACTION][0])
     table = placement_table(before.shape[1])
-    column, orient = int(table.column[p, a]), int(table.orient[p, a])
     cleared = int(td["next", keys.LINES].sum()) - int(td[keys.LINES].sum())
     frame: dict[str, Any] = {
         "type": "tetris",
@@ -58,8 +65,8 @@ def tetris_frame(td: TensorDictBase, episode: int, weight: float, **extra: Any) 
         "lines": int(td["next", keys.LINES].sum()),
         "pieces": int(td["next", keys.PIECES_PLACED].sum()),
         "episode": episode,
-        "label": f"{PIECE_NAMES[p]} at column {column + 1}",
-        "action": f"{PIECE_NAMES[p]} at column {column + 1}, rotation {orient}",
+        "label": f"{PIECE_NAMES[p]} at column {int(table.column[p, a]) + 1}",
+        "action": action_label(td, a),
         "weight": weight,
         **extra,
     }
@@ -75,14 +82,6 @@ def tetris_frame(td: TensorDictBase, episode: int, weight: float, **extra: Any) 
         frame["cleared_rows"] = [r for r in range(full.shape[0]) if bool(full[r].all())]
         frame["placed_before_clear"] = cells
     return frame
-
-
-def action_label(td: TensorDictBase, action: int) -> str:
-    """Placement ``action`` of the piece in ``td`` in the page's words ("S at column 3, rotation 1")."""
-    p = int(td[keys.PIECE][0])
-    table = placement_table(td[keys.BOARD].shape[-1])
-    column, orient = int(table.column[p, action]), int(table.orient[p, action])
-    return f"{PIECE_NAMES[p]} at column {column + 1}, rotation {orient}"
 
 
 class BrowserTetrisTrainer(QueueTrainer):
