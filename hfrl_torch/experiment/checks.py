@@ -357,7 +357,7 @@ def check_keepaway_domain(cfg: DictConfig) -> None:
         ("hold_ball", HOLD_RULES),
         ("decision_timing", DECISION_TIMINGS),
     ):
-        if name in cfg.domain:  # a saved run's config that predates the option keeps the simulator's default
+        if name in cfg.domain:  # a saved run's config that predates the option plays the exact task's
             require_choice(cfg, f"domain.{name}", allowed)
     if require_bool(cfg, "domain.noisy_observations") and cfg.domain.get("perception") == "server":
         raise ConfigError(

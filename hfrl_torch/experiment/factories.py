@@ -21,7 +21,7 @@ from hfrl_torch.agents.tamer.deep_tamer import DeepTamer
 from hfrl_torch.agents.tamer.keeper_tamer import KeeperTamer
 from hfrl_torch.common.checkpoint import load_checkpoint
 from hfrl_torch.common.threads import available_threads
-from hfrl_torch.envs.keepaway import KeepawayConfig
+from hfrl_torch.envs.keepaway import KeepawayConfig, saved_config
 from hfrl_torch.envs.tetris import engine_torch
 from hfrl_torch.envs.tetris.engine_numba import play as numba_play
 from hfrl_torch.envs.tetris.env import TetrisEnv
@@ -348,11 +348,12 @@ def make_fusion(
 
 
 def make_keepaway_config(cfg: DictConfig) -> KeepawayConfig:
-    """The simulator's ``KeepawayConfig`` from ``domain`` (every field it has that ``domain`` sets)."""
+    """The simulator's ``KeepawayConfig`` from ``domain`` (every field it has that ``domain`` sets; a saved
+    run's ``domain`` that predates the perception options plays the exact task it was trained on)."""
     names = {f.name for f in dataclasses.fields(KeepawayConfig)}
     values = {k: v for k, v in OmegaConf.to_container(cfg.domain, resolve=True).items() if k in names}
     values["preset"] = str(values["preset"])
-    return KeepawayConfig(**values)
+    return saved_config(values)
 
 
 def make_keepers(cfg: DictConfig, config: KeepawayConfig, device: torch.device) -> SarsaLambda:

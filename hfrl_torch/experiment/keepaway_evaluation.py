@@ -20,6 +20,7 @@ from hfrl_torch.envs.keepaway import (
     play_keeper_policy,
     record_episode_gif,
     record_keeper_gif,
+    saved_config,
 )
 from hfrl_torch.envs.keepaway.benchmark_policies import CYCLES_PER_SECOND
 from hfrl_torch.experiment.checks import check_kernels
@@ -94,7 +95,7 @@ def _keepaway_checkpoint(policy: str) -> tuple[dict[str, Any], KeepawayConfig]:
         )
     ckpt = load_checkpoint(policy, domain="keepaway")
     try:
-        config = KeepawayConfig(**ckpt["domain_config"])
+        config = saved_config(ckpt["domain_config"])
     except (KeyError, TypeError, ValueError) as e:
         raise CheckpointError(f"checkpoint {ckpt['path']!r} holds no valid keepaway task ({e})") from None
     return ckpt, config

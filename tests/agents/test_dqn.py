@@ -17,7 +17,7 @@ from hfrl_torch.agents.dqn import TeamSteps
 from hfrl_torch.agents.tamer.deep_tamer import DeepTamer
 from hfrl_torch.common.checkpoint import load_checkpoint
 from hfrl_torch.common.errors import ConfigError
-from hfrl_torch.envs.keepaway import KeepawayEnv
+from hfrl_torch.envs.keepaway import TASKS, KeepawayEnv
 from hfrl_torch.envs.tetris import TetrisEnv, TetrisRules
 from hfrl_torch.feedback.credit import GammaDelay, PreviousStep
 from hfrl_torch.fusion import FeedbackFusion
@@ -79,7 +79,7 @@ def test_keepaway_env_with_team_steps_trainer_and_fusion_passes_check_env_specs(
     trainer = KeepawayOracle(3, 2, frequency=1.0, consistency=1.0, seed=0)
     fusion = FeedbackFusion("reward_shaping", 0.5)
     env = TransformedEnv(
-        KeepawayEnv(3, seed=2, sync="all", decision_period_cycles=5),
+        KeepawayEnv(3, seed=2, sync="all", decision_period_cycles=5, **TASKS["exact"]),
         Compose(TeamSteps(), KeeperFeedback(trainer), fusion),
     )
     check_env_specs(env, seed=0)

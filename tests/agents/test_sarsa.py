@@ -13,7 +13,7 @@ from hfrl_torch.agents.sarsa import SarsaLambda, SarsaLambdaNumba, trace_capacit
 from hfrl_torch.agents.sarsa import sarsa_keepers as make_sarsa_keepers
 from hfrl_torch.common.checkpoint import load_checkpoint
 from hfrl_torch.common.errors import ConfigError
-from hfrl_torch.envs.keepaway import KeepawayConfig, KeepawayEnv, play_benchmark_policy
+from hfrl_torch.envs.keepaway import TASKS, KeepawayConfig, KeepawayEnv, play_benchmark_policy
 from hfrl_torch.experiment.checks import check_sarsa
 from hfrl_torch.experiment.cli import compose_config
 from hfrl_torch.models.tile_coding import TileCoding, keepaway_tile_widths
@@ -202,6 +202,7 @@ class RecordingSarsa(SarsaLambda):
 
 
 KEEPAWAY = ["domain=keepaway", "logger=none"]
+EXACT = TASKS["exact"]  # the exact-state task, the env these tests put in the learner's place
 
 
 @pytest.mark.parametrize("sync,per_learner", [("all", 1), ("any", 1), ("any", 3)])
@@ -211,7 +212,7 @@ def test_smdp_rewards_are_per_keeper(tmp_path, run_learner, sync, per_learner):
 
     def record_every_call(learner) -> None:
         """The learner's env in the ``sync`` mode under test, and Sarsa keepers that note every call."""
-        learner.env = KeepawayEnv(fields, KeepawayConfig(), seed=11, sync=sync)
+        learner.env = KeepawayEnv(fields, KeepawayConfig(**EXACT), seed=11, sync=sync)
         coder = TileCoding(keepaway_tile_widths(), 3, learners=teams * n, size=2**12)
         slots = torch.arange(fields * n)
         tables = (slots // n // per_learner) * n + slots % n  # each field's keepers: their team's tables
@@ -262,12 +263,14 @@ def test_smdp_rewards_are_per_keeper(tmp_path, run_learner, sync, per_learner):
 def test_short_learning_run_beats_the_random_policy(tmp_path, run_learner):
     # 500 ms decisions (the thesis's setting) and one weight table shared by the keepers of all 32
     # fields, so that about half a simulated hour of experience, half a minute of CPU, reaches one learner.
-    random = play_benchmark_policy("random", 400, batch=200, seed=7, progress=False, decision_period_cycles=5)
+    random = play_benchmark_policy(
+        "random", 400, batch=200, seed=7, progress=False, decision_period_cycles=5, **EXACT
+    )
     fields = 32
 
     def one_shared_table(learner) -> None:
         """The fields in lock-step (``sync="all"``) and one weight table for the keepers of every field."""
-        learner.env = KeepawayEnv(fields, KeepawayConfig(decision_period_cycles=5), seed=7)
+        learner.env = KeepawayEnv(fields, KeepawayConfig(decision_period_cycles=5, **EXACT), seed=7)
         coder = TileCoding(keepaway_tile_widths(), 3, learners=1, size=2**18)
         learner.agent_sarsa = SarsaLambda(coder, seed=7, tables=torch.zeros(fields * 3, dtype=torch.int64))
 

@@ -3,6 +3,7 @@ spec check; ``reset(seed=...)`` repeats an episode exactly."""
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 
 import gymnasium as gym
@@ -13,7 +14,10 @@ from torchrl.envs import GymWrapper
 from torchrl.envs.utils import check_env_specs
 
 import hfrl_torch  # noqa: F401  (registers the ids)
+from hfrl_torch.envs.keepaway import KeepawayConfig, KeepawayEnv, KeepawaySimulator
 from hfrl_torch.envs.registration import ENV_IDS
+from hfrl_torch.experiment.cli import compose_train
+from hfrl_torch.experiment.factories import make_keepaway_config
 
 SMALL = {"hfrl_torch/Tetris-v0": {"width": 8, "height": 8}, "hfrl_torch/Keepaway-v0": {}}
 
@@ -67,3 +71,25 @@ def test_a_seeded_reset_repeats_the_episode_after_play(env_id):
         np.array_equal(a, b) and np.array_equal(a, c) for a, b, c in zip(first, again, fresh, strict=True)
     )
     assert not np.array_equal(first[0], other[0])
+
+
+def test_keepaway_defaults_play_train_py_s_task():
+    """The library's keepaway defaults (the Gymnasium id, ``KeepawayEnv()``, ``KeepawaySimulator()``,
+    ``KeepawayConfig()``) are the task ``train.py domain=keepaway`` plays, field by field; only how it runs
+    (``kernels``) and the decision period (5 cycles when a trainer watches) are train.py's own."""
+    cfg = compose_train("domain=keepaway")
+    trained = make_keepaway_config(cfg)
+    how = {"kernels", "decision_period_cycles"}
+    task = [f.name for f in dataclasses.fields(KeepawayConfig) if f.name not in how]
+    # the domain config sets every field compared: none of them is left to KeepawayConfig's default
+    assert set(task) <= set(cfg.domain)
+    assert trained.perception == "server"
+    defaults = {
+        "hfrl_torch/Keepaway-v0": gym.make("hfrl_torch/Keepaway-v0").unwrapped.env.config,
+        "KeepawayEnv()": KeepawayEnv().config,
+        "KeepawaySimulator(1)": KeepawaySimulator(1).config,
+        "KeepawayConfig()": KeepawayConfig(),
+    }
+    for where, config in defaults.items():
+        for name in task:
+            assert getattr(config, name) == getattr(trained, name), (where, name)

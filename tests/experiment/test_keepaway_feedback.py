@@ -15,7 +15,7 @@ from hfrl_torch import keys
 from hfrl_torch.agents.tamer.keeper_tamer import KeeperTamer
 from hfrl_torch.common.checkpoint import load_checkpoint
 from hfrl_torch.common.errors import ConfigError
-from hfrl_torch.envs.keepaway import KeepawayConfig, KeepawayEnv
+from hfrl_torch.envs.keepaway import TASKS, KeepawayConfig, KeepawayEnv
 from hfrl_torch.experiment.factories import make_keepaway_config
 from hfrl_torch.feedback.channel import FeedbackChannel
 from hfrl_torch.feedback.credit import PreviousStep
@@ -107,7 +107,7 @@ def test_feedback_waits_for_its_arrival_and_credits_the_decisions_before_it():
 def test_reward_shaping_on_the_env_adds_w_times_h_of_each_keepers_previous_decision():
     """Each keeper's SMDP reward, and at the end every keeper's last one, plus w H^ of that keeper's own
     previous decision; checked against the same env without the transform, step by step."""
-    config = KeepawayConfig(decision_period_cycles=5)
+    config = KeepawayConfig(decision_period_cycles=5, **TASKS["exact"])
     raw = KeepawayEnv(2, config, seed=3, sync="any")
     fusion = Fusion.from_option("reward_shaping", ConstantWeight([2.0, 2.0]))
     shaped = TransformedEnv(

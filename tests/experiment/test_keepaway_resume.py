@@ -13,7 +13,7 @@ import torch
 from hfrl_torch.agents.tamer.keeper_tamer import KeeperTamer
 from hfrl_torch.common.checkpoint import CheckpointWarning, load_checkpoint
 from hfrl_torch.common.errors import CheckpointError
-from hfrl_torch.envs.keepaway import KeepawayConfig, KeepawayEnv
+from hfrl_torch.envs.keepaway import TASKS, KeepawayConfig, KeepawayEnv
 from hfrl_torch.envs.keepaway.simulator import KeepawaySimulator
 from hfrl_torch.models.tile_coding import TileCoding
 
@@ -113,14 +113,14 @@ def test_a_play_that_does_not_fit_is_one_line(tmp_path, run_learner, one_thread)
 
 
 def test_the_env_continues_from_its_state_as_if_never_saved():
-    env = KeepawayEnv(3, KeepawayConfig(), seed=5, sync="any")
+    env = KeepawayEnv(3, KeepawayConfig(**TASKS["exact"]), seed=5, sync="any")
     td = env.reset()
     actions = torch.zeros(3, dtype=torch.int64)
     for _ in range(20):
         td["action"] = actions
         td, td = env.step_and_maybe_reset(td)
     saved = env.state_dict()
-    again = KeepawayEnv(3, KeepawayConfig(), seed=99, sync="any")
+    again = KeepawayEnv(3, KeepawayConfig(**TASKS["exact"]), seed=99, sync="any")
     again.load_state_dict(saved)
     for _ in range(40):
         td["action"] = actions
@@ -130,7 +130,7 @@ def test_the_env_continues_from_its_state_as_if_never_saved():
     for name, value in env.sim.state.tensors().items():
         assert torch.equal(value, again.sim.state.tensors()[name]), name
     with pytest.raises(ValueError, match="keepaway env output 'observation' does not fit"):
-        KeepawayEnv(2, KeepawayConfig()).load_state_dict(saved)
+        KeepawayEnv(2, KeepawayConfig(**TASKS["exact"])).load_state_dict(saved)
 
 
 def _coder() -> TileCoding:
@@ -138,17 +138,17 @@ def _coder() -> TileCoding:
 
 
 def test_the_simulator_and_keeper_tamer_round_trip_their_state():
-    sim = KeepawaySimulator(2, KeepawayConfig(), seed=1)
+    sim = KeepawaySimulator(2, KeepawayConfig(**TASKS["exact"]), seed=1)
     for _ in range(7):
         sim.step(torch.zeros(2, dtype=torch.int64))
-    copy = KeepawaySimulator(2, KeepawayConfig(), seed=2)
+    copy = KeepawaySimulator(2, KeepawayConfig(**TASKS["exact"]), seed=2)
     copy.load_state_dict(sim.state_dict())
     for _ in range(30):
         a, b = sim.step(torch.zeros(2, dtype=torch.int64)), copy.step(torch.zeros(2, dtype=torch.int64))
         assert torch.equal(a.ended, b.ended)
     assert torch.equal(sim.state.pos, copy.state.pos) and torch.equal(sim.state.seen_pos, copy.state.seen_pos)
     with pytest.raises(ValueError, match="keepaway simulator state 'pos'"):
-        KeepawaySimulator(3, KeepawayConfig()).load_state_dict(sim.state_dict())
+        KeepawaySimulator(3, KeepawayConfig(**TASKS["exact"])).load_state_dict(sim.state_dict())
 
     tamer = KeeperTamer(_coder(), fields=2)
     tiles = torch.randint(0, 2**8, (2, tamer.model.active_tiles), generator=torch.Generator().manual_seed(0))

@@ -13,7 +13,7 @@ from hfrl_torch import keys
 from hfrl_torch.agents.tamer.keeper_tamer import KeeperTamer
 from hfrl_torch.common.checkpoint import load_checkpoint
 from hfrl_torch.common.errors import ConfigError
-from hfrl_torch.envs.keepaway import KeepawayConfig
+from hfrl_torch.envs.keepaway import TASKS, KeepawayConfig
 from hfrl_torch.envs.keepaway.records import KeepawayRecords
 from hfrl_torch.envs.keepaway.simulator import KeepawaySimulator
 from hfrl_torch.experiment.cli import compose_config
@@ -30,7 +30,7 @@ from hfrl_torch.interactive.session import TeachingSession
 from hfrl_torch.models.tile_coding import TileCoding
 from hfrl_torch.trainers.queue_trainer import QueueTrainer
 
-CONFIG = KeepawayConfig(decision_period_cycles=5)
+CONFIG = KeepawayConfig(decision_period_cycles=5, **TASKS["exact"])
 
 
 def _fake_clock(start: float = 100.0) -> tuple[list[float], list[float], TeachingSession]:

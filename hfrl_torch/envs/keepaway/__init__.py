@@ -9,7 +9,14 @@ from hfrl_torch.envs.keepaway.benchmark_policies import (
 )
 from hfrl_torch.envs.keepaway.env import EPISODE_END_REWARDS, STEP_CYCLES, KeepawayEnv
 from hfrl_torch.envs.keepaway.gym_env import ENV_ID, KeepawayGymEnv, register_keepaway
-from hfrl_torch.envs.keepaway.params import PRESETS, TASKS, KeepawayConfig, PhysicsParams, physics_preset
+from hfrl_torch.envs.keepaway.params import (
+    PRESETS,
+    TASKS,
+    KeepawayConfig,
+    PhysicsParams,
+    physics_preset,
+    saved_config,
+)
 from hfrl_torch.envs.keepaway.policies import (
     POLICIES,
     hand_coded_actions,
@@ -49,5 +56,6 @@ __all__ = [
     "record_keeper_gif",
     "register_keepaway",
     "render_rgb",
+    "saved_config",
     "write_gif",
 ]

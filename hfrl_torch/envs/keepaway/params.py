@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
+from typing import Any
 
 import torch
 
@@ -68,8 +70,9 @@ HOLD_RULES = ("spec", "reference")
 DECISION_TIMINGS = ("cycle", "server")
 
 # The two tasks' perception options, for ``KeepawayConfig(**TASKS[name])``: "server" is the reference's
-# (each player on its own world model, BasicPlayer's HoldBall, the players' decision timing; the domain
-# config's default), "exact" the true state every cycle with the spec's HoldBall and timing.
+# (each player on its own world model, BasicPlayer's HoldBall, the players' decision timing; the default of
+# KeepawayConfig and of the domain config), "exact" the true state every cycle with the spec's HoldBall and
+# timing (the simulator's only task before these options, and so what a saved task without them played).
 TASKS = MappingProxyType(
     {
         "server": MappingProxyType(
@@ -100,6 +103,13 @@ def resolve_kernels(kernels: str, device: torch.device, dtype: torch.dtype = tor
 class KeepawayConfig:
     """Everything that defines a keepaway task, apart from the batch size and the seed.
 
+    The defaults are the task ``train.py domain=keepaway`` plays (conf/domain/keepaway.yaml): the 2005
+    preset, 3v2 on 20 x 20 m, movement noise, server perception (``TASKS["server"]``); the exact-state
+    task is ``KeepawayConfig(**TASKS["exact"])``. Two fields depend on how and by whom the task is run,
+    and train.py may pick other values: ``kernels`` (train.py: ``cycle`` on the CPU, ``numba`` for the
+    browser trainer, ``torch`` on a GPU) and ``decision_period_cycles`` (train.py: 5 when a trainer
+    watches, else 1). A saved task that predates the perception options: :func:`saved_config`.
+
     :param preset: physics preset, ``"2005"`` or ``"rcss19"``.
     :param keepers: number of keepers n (at least 2).
     :param takers: number of takers m (at least 1).
@@ -108,7 +118,8 @@ class KeepawayConfig:
     :param turnover_cycles: cycles of taker possession that end an episode; ``None`` means the
         preset's server value (5 for ``"2005"``, 4 for ``"rcss19"``).
     :param movement_noise: add the server's movement, turn and kick noise.
-    :param noisy_observations: quantise the deciding keeper's view like the server's visual sensor.
+    :param noisy_observations: quantise the deciding keeper's view like the server's visual sensor
+        (``perception="exact"`` only).
     :param decision_period_cycles: cycles a HoldBall decision lasts (1 = 100 ms reference,
         5 = 500 ms as in the thesis's human-feedback experiments).
     :param intercept_horizon: look-ahead of GoToBall in cycles.
@@ -118,16 +129,16 @@ class KeepawayConfig:
         compiled, the same bits as torch), ``"torch"``, or ``"cycle"`` (whole cycles and the SMDP
         advance compiled per field, float32 on CPU; within float32 rounding of torch).
     :param perception: what the players know: ``"exact"`` (every player sees the true state every
-        cycle) or ``"server"`` (each player acts on its own world model, refreshed by the server's
-        quantised see message every 150 ms and extrapolated in between, as the UT keepaway players'
-        world model does; see perception.py).
+        cycle) or ``"server"`` (the default: each player acts on its own world model, refreshed by the
+        server's quantised see message every 150 ms and extrapolated in between, as the UT keepaway
+        players' world model does; see perception.py).
     :param hold_ball: HoldBall's opponent and side rule: ``"spec"`` (the nearest taker to the holder,
-        the side nearer the ball) or ``"reference"`` (BasicPlayer::holdBall: the opponent nearest the
-        ball, the side away from its body heading).
+        the side nearer the ball) or ``"reference"`` (the default; BasicPlayer::holdBall: the opponent
+        nearest the ball, the side away from its body heading).
     :param decision_timing: when the keeper with the ball decides: ``"cycle"`` (whenever it truly can
-        kick the ball; a pass runs while it stays kickable) or ``"server"`` (when its world model says
-        it can kick; a pass is re-decided at each see message and the reward clock restarts at every
-        cycle the pass is carried on, as KeepawayPlayer::keeperWithBall does).
+        kick the ball; a pass runs while it stays kickable) or ``"server"`` (the default: when its world
+        model says it can kick; a pass is re-decided at each see message and the reward clock restarts
+        at every cycle the pass is carried on, as KeepawayPlayer::keeperWithBall does).
     """
 
     preset: str = "2005"
@@ -142,9 +153,9 @@ class KeepawayConfig:
     intercept_horizon: int = 30
     collision_passes: int = 10
     kernels: str = "auto"
-    perception: str = "exact"
-    hold_ball: str = "spec"
-    decision_timing: str = "cycle"
+    perception: str = "server"
+    hold_ball: str = "reference"
+    decision_timing: str = "server"
 
     def __post_init__(self) -> None:
         physics_preset(self.preset)
@@ -200,3 +211,10 @@ class KeepawayConfig:
     def replace(self, **changes: object) -> KeepawayConfig:
         """A copy with some fields changed."""
         return dataclasses.replace(self, **changes)
+
+
+def saved_config(values: Mapping[str, Any]) -> KeepawayConfig:
+    """The task a saved config plays (a checkpoint's ``domain_config``, a saved run's ``domain``): its
+    fields, and where it predates ``perception``, ``hold_ball`` or ``decision_timing`` the exact task's
+    value, which it was trained on (the defaults then), so it replays as it was trained."""
+    return KeepawayConfig(**{**TASKS["exact"], **values})

@@ -27,7 +27,7 @@ import torch
 from hfrl_torch.envs.keepaway import skills
 from hfrl_torch.envs.keepaway.compiled import skills as compiled_skills
 from hfrl_torch.envs.keepaway.compiled.glue import task_arrays
-from hfrl_torch.envs.keepaway.params import KeepawayConfig
+from hfrl_torch.envs.keepaway.params import TASKS, KeepawayConfig
 
 if len(sys.argv) > 1:
     skills.MARK_DISTANCE = float(sys.argv[1])
@@ -38,7 +38,7 @@ takers = torch.tensor([[[6.0, -6.0], [7.0, -5.0], [-3.0, -1.0]]])
 ball = keepers[:, 0] + 0.5
 with_ball = torch.tensor([0])
 torch_point = skills.block_pass_target(keepers, takers, with_ball, ball)[0]
-_, ip, _, _ = task_arrays(KeepawayConfig(takers=3))
+_, ip, _, _ = task_arrays(KeepawayConfig(takers=3, **TASKS["exact"]))
 view = torch.cat((ball[:, None], keepers, takers), 1)[0].double().numpy()
 compiled_point = compiled_skills._block_point(view, 0, ip)
 print(json.dumps({"torch": torch_point.tolist(), "compiled": [float(v) for v in compiled_point]}))

@@ -202,12 +202,14 @@ def test_kernel_choice_and_errors() -> None:
     """``cycle`` is a valid ``kernels`` value for float32 on CPU only; the compiled-only calls say so."""
     assert resolve_kernels("cycle", torch.device("cpu")) == "cycle"
     with pytest.raises(ValueError, match="kernels='cycle' runs float32 on the CPU only"):
-        KeepawaySimulator(2, KeepawayConfig(kernels="cycle"), dtype=torch.float64)
+        KeepawaySimulator(2, KeepawayConfig(kernels="cycle", **EXACT), dtype=torch.float64)
     with pytest.raises(ValueError, match="kernels='bogus' is invalid; allowed: auto, numba, torch, cycle"):
         KeepawayConfig(kernels="bogus")
     with pytest.raises(ValueError, match="needs kernels='cycle', not kernels='torch'"):
-        KeepawaySimulator(2, KeepawayConfig(kernels="torch")).advance(None, torch.ones(2, dtype=torch.bool))
-    sim = KeepawaySimulator(2, KeepawayConfig(kernels="cycle"))
+        KeepawaySimulator(2, KeepawayConfig(kernels="torch", **EXACT)).advance(
+            None, torch.ones(2, dtype=torch.bool)
+        )
+    sim = KeepawaySimulator(2, KeepawayConfig(kernels="cycle", **EXACT))
     with pytest.raises(ValueError, match="policy='best' is invalid"):
         sim.play_policy("best", 1)
 
@@ -235,7 +237,7 @@ def test_the_interception_shortcuts_keep_the_fastest_keeper_and_its_point() -> N
     from hfrl_torch.envs.keepaway.compiled.keepers import _fastest, _keeper_intercepts
     from hfrl_torch.envs.keepaway.compiled.skills import _intercept
 
-    prm, ip, tabs, _ = task_arrays(KeepawayConfig(kernels="cycle"))
+    prm, ip, tabs, _ = task_arrays(KeepawayConfig(kernels="cycle", **EXACT))
     g = torch.Generator().manual_seed(5)
     n = int(ip[N])
     for trial in range(400):

@@ -31,26 +31,27 @@ SYNCS = ("all", "any")
 
 
 SERVER = TASKS["server"]
+EXACT = TASKS["exact"]  # the exact-state task, which these tests were written on
 
 
 @pytest.mark.parametrize("sync", SYNCS)
 @pytest.mark.parametrize(
     "options",
     [
-        {},
-        {"preset": "rcss19", "decision_period_cycles": 5},
-        {"keepers": 4, "takers": 3},
+        EXACT,
+        {"preset": "rcss19", "decision_period_cycles": 5, **EXACT},
+        {"keepers": 4, "takers": 3, **EXACT},
         SERVER,
         {"keepers": 4, "takers": 3, "decision_period_cycles": 5, **SERVER},
         {"kernels": "cycle", **SERVER},
-        {"kernels": "cycle", "keepers": 4, "takers": 3, "decision_period_cycles": 5},
+        {"kernels": "cycle", "keepers": 4, "takers": 3, "decision_period_cycles": 5, **EXACT},
     ],
 )
 def test_check_env_specs(options: dict, sync: str) -> None:
     check_env_specs(KeepawayEnv(3, seed=1, sync=sync, **options))
 
 
-@pytest.mark.parametrize("options", [{}, SERVER, {"kernels": "cycle", **SERVER}])
+@pytest.mark.parametrize("options", [EXACT, SERVER, {"kernels": "cycle", **SERVER}])
 @pytest.mark.parametrize("sync", SYNCS)
 def test_partial_reset_changes_only_flagged_fields(sync: str, options: dict) -> None:
     env = KeepawayEnv(4, seed=2, sync=sync, **options)
@@ -76,7 +77,7 @@ def test_partial_reset_changes_only_flagged_fields(sync: str, options: dict) -> 
 
 
 @pytest.mark.parametrize("batch", [6, 1])  # at B = 1 every reset restarts every field: TorchRL's other branch
-@pytest.mark.parametrize("options", [{}, {"kernels": "cycle", **SERVER}])
+@pytest.mark.parametrize("options", [EXACT, {"kernels": "cycle", **SERVER}])
 @pytest.mark.parametrize("sync", SYNCS)
 def test_maybe_reset_gives_what_torchrl_s_blend_gives(sync: str, options: dict, batch: int) -> None:
     """KeepawayEnv.maybe_reset puts the reset's entries in place; TorchRL's (here through a TransformedEnv,
@@ -105,7 +106,7 @@ def test_maybe_reset_gives_what_torchrl_s_blend_gives(sync: str, options: dict, 
 
 
 def test_any_mode_steps_one_cycle_and_ignores_other_fields_actions() -> None:
-    env = KeepawayEnv(6, seed=8, sync="any")
+    env = KeepawayEnv(6, seed=8, sync="any", **EXACT)
     td = env.reset()
     assert not td[keys.DECIDING].any()  # nobody has the ball at the start
     gen = torch.Generator().manual_seed(1)
@@ -113,7 +114,7 @@ def test_any_mode_steps_one_cycle_and_ignores_other_fields_actions() -> None:
     for _ in range(60):
         deciding = td[keys.DECIDING].clone()
         td.set(keys.ACTION, torch.randint(0, 3, (6,), generator=gen))
-        twin = KeepawayEnv(6, seed=8, sync="any")
+        twin = KeepawayEnv(6, seed=8, sync="any", **EXACT)
         twin.sim.state, twin.sim.generator = env.sim.state.clone(), _copy_generator(env.sim.generator)
         twin._done, twin._outputs = env._done.clone(), {k: v.clone() for k, v in env._outputs.items()}
         other = td.clone().set(keys.ACTION, torch.where(deciding, td[keys.ACTION], (td[keys.ACTION] + 1) % 3))
@@ -138,7 +139,7 @@ def _copy_generator(generator: torch.Generator) -> torch.Generator:
 def _first_episodes(sync: str, fields: int) -> tuple[list[list[tuple]], list[tuple[int, int]]]:
     """Each field's decisions (keeper, cycle, state variables) and (duration, cause) of its first
     episode, Hand-coded keepers, no movement noise."""
-    env = KeepawayEnv(fields, seed=3, sync=sync, movement_noise=False)
+    env = KeepawayEnv(fields, seed=3, sync=sync, movement_noise=False, **EXACT)
     td = env.reset()
     decisions: list[list[tuple]] = [[] for _ in range(fields)]
     ends: list[tuple[int, int] | None] = [None] * fields
@@ -166,7 +167,7 @@ def test_any_mode_plays_the_same_episodes_as_all_mode() -> None:
 
 def _durations(sync: str, fields: int, per_field: int) -> torch.Tensor:
     """The first ``per_field`` episode durations (cycles) of every field, Random keepers."""
-    env = KeepawayEnv(fields, seed=4, sync=sync)
+    env = KeepawayEnv(fields, seed=4, sync=sync, **EXACT)
     choose = make_benchmark_policy("random", 3, 2, torch.Generator().manual_seed(4))
     td = env.reset()
     count = torch.zeros(fields, dtype=torch.long)
@@ -193,7 +194,7 @@ def test_any_mode_episode_durations_match_all_mode() -> None:
 
 
 def _episode(seed: int) -> list[tuple[int, float, int]]:
-    env = KeepawayEnv(1, seed=seed)
+    env = KeepawayEnv(1, seed=seed, **EXACT)
     td = env.reset()
     trace = []
     for step in range(400):
@@ -214,11 +215,11 @@ def test_same_seed_same_episode() -> None:
 @pytest.mark.parametrize(
     "sync,steps,options",
     [
-        ("all", 30, {}),
-        ("any", 400, {}),
-        ("any", 300, {"perception": "server"}),
-        ("all", 30, {"kernels": "cycle"}),
-        ("any", 300, {"perception": "server", "kernels": "cycle"}),
+        ("all", 30, EXACT),
+        ("any", 400, EXACT),
+        ("any", 300, {**EXACT, "perception": "server"}),
+        ("all", 30, {"kernels": "cycle", **EXACT}),
+        ("any", 300, {**EXACT, "perception": "server", "kernels": "cycle"}),
     ],
 )
 def test_rewards_count_cycles_per_keeper(sync: str, steps: int, options: dict) -> None:
@@ -278,7 +279,7 @@ def test_rewards_count_cycles_per_keeper(sync: str, steps: int, options: dict) -
 
 
 def test_decision_period_makes_holds_last_five_cycles() -> None:
-    env = KeepawayEnv(4, seed=4, decision_period_cycles=5)
+    env = KeepawayEnv(4, seed=4, decision_period_cycles=5, **EXACT)
     td = env.reset()
     td.set(keys.ACTION, torch.zeros(4, dtype=torch.long))
     out = env.step(td)["next"]
@@ -290,7 +291,7 @@ def test_decision_period_makes_holds_last_five_cycles() -> None:
 def test_gym_registration_is_idempotent_and_env_runs() -> None:
     register_keepaway()
     register_keepaway()
-    env = gymnasium.make(ENV_ID, render_mode="rgb_array", keepers=4, takers=3)
+    env = gymnasium.make(ENV_ID, render_mode="rgb_array", keepers=4, takers=3, **EXACT)
     obs, info = env.reset(seed=0)
     assert obs.shape == (19,)
     assert env.action_space.n == 4
@@ -306,7 +307,7 @@ def test_gym_registration_is_idempotent_and_env_runs() -> None:
 
 
 def test_render_and_gif(tmp_path) -> None:
-    sim = KeepawaySimulator(2, KeepawayConfig(keepers=5, takers=4), seed=0)
+    sim = KeepawaySimulator(2, KeepawayConfig(keepers=5, takers=4, **EXACT), seed=0)
     frame = render_rgb(sim.state, 1, sim.config)
     assert frame.shape[2] == 3 and frame.dtype == np.uint8
     assert (frame == np.array([220, 40, 40], dtype=np.uint8)).all(-1).any()  # takers drawn
@@ -315,7 +316,7 @@ def test_render_and_gif(tmp_path) -> None:
 
 
 def test_benchmark_runner_fields() -> None:
-    result = play_benchmark_policy("hold", 12, batch=6, progress=False)
+    result = play_benchmark_policy("hold", 12, batch=6, progress=False, **EXACT)
     assert set(result) == {
         "domain",
         "policy",
@@ -340,7 +341,9 @@ def test_benchmark_runner_fields() -> None:
 
 @pytest.mark.parametrize("keepers,takers", [(4, 3), (5, 4)])
 def test_larger_teams_play_episodes(keepers: int, takers: int) -> None:
-    result = play_benchmark_policy("random", 8, keepers=keepers, takers=takers, batch=8, progress=False)
+    result = play_benchmark_policy(
+        "random", 8, keepers=keepers, takers=takers, batch=8, progress=False, **EXACT
+    )
     assert result["episodes"] == 8 and result["mean_s"] > 0.5
 
 
@@ -348,7 +351,7 @@ def test_larger_teams_play_episodes(keepers: int, takers: int) -> None:
 def test_always_hold_episodes_are_taken_within_a_bounded_time(preset: str) -> None:
     """Always Hold against the takers must end, mostly by a turnover, within seconds (the
     reference HoldBall side rule froze it in a turn-only cycle, docs/keepaway.md item 14)."""
-    sim = KeepawaySimulator(64, KeepawayConfig(preset=preset), seed=7)
+    sim = KeepawaySimulator(64, KeepawayConfig(preset=preset, **EXACT), seed=7)
     ended = torch.zeros(64, dtype=torch.bool)
     cause = torch.zeros(64, dtype=torch.long)
     for _ in range(200):

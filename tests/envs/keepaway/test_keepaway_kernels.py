@@ -158,14 +158,15 @@ def test_coincident_objects_separate_alike() -> None:
 
 
 SERVER = TASKS["server"]
+EXACT = TASKS["exact"]
 
 
 @pytest.mark.parametrize(
     ("preset", "keepers", "takers", "noise", "options"),
     [
-        ("2005", 3, 2, True, {}),
-        ("rcss19", 4, 3, True, {}),
-        ("2005", 5, 4, False, {}),
+        ("2005", 3, 2, True, EXACT),
+        ("rcss19", 4, 3, True, EXACT),
+        ("2005", 5, 4, False, EXACT),
         ("rcss19", 3, 2, True, SERVER),  # every player's own world model: the kernels run per view
         ("2005", 4, 3, True, SERVER),
     ],
@@ -216,7 +217,7 @@ def test_kernel_choice() -> None:
 def test_gpu_torch_path_follows_cpu() -> None:
     """The GPU runs the torch path; from one state, its cycles agree with the CPU's to rounding
     (transcendental functions differ in the last bit), and a seed fixes its episodes."""
-    for options in ({}, SERVER):
+    for options in (EXACT, SERVER):
         config = KeepawayConfig(movement_noise=False, **options)
         cpu = KeepawaySimulator(256, config, seed=5)
         gpus = [KeepawaySimulator(256, config, device="cuda", seed=5) for _ in range(2)]

@@ -38,6 +38,7 @@ from hfrl_torch.experiment.factories import make_keepaway_config
 torch.set_num_threads(1)
 PHYSICS = physics_preset("rcss19")
 SERVER = TASKS["server"]
+EXACT = TASKS["exact"]
 
 
 def scene(objects: list[tuple[float, float]], bodies: list[float] | None = None, vel=None):
@@ -232,7 +233,7 @@ def test_the_decider_observes_its_own_world_model() -> None:
     expected, _ = keeper_state_variables(mine[:, 1:4], mine[:, 4:], holder)
     assert torch.equal(obs, expected)
     assert torch.equal(mine[torch.arange(8), holder + 1], sim.state.pos[torch.arange(8), holder + 1])
-    exact = KeepawaySimulator(8, KeepawayConfig(), seed=1)
+    exact = KeepawaySimulator(8, KeepawayConfig(**EXACT), seed=1)
     exact.state = sim.state
     true_obs, _ = exact.observe(holder)
     assert not torch.allclose(obs, true_obs)
@@ -281,7 +282,7 @@ def _hold_episodes_ended(config: KeepawayConfig, fields: int = 48, cycles: int =
 def test_reference_hold_rule_loops_under_exact_perception_and_ends_under_the_server_one() -> None:
     """docs/keepaway.md item 14: with exact, every-cycle headings the reference rule keeps the takers
     turning; with the server's perception Always Hold ends within seconds."""
-    exact = _hold_episodes_ended(KeepawayConfig(preset="rcss19", hold_ball="reference"))
+    exact = _hold_episodes_ended(KeepawayConfig(preset="rcss19", **{**EXACT, "hold_ball": "reference"}))
     server = _hold_episodes_ended(KeepawayConfig(preset="rcss19", **SERVER))
     assert exact < 0.3 and server > 0.95
 
@@ -306,7 +307,7 @@ def test_server_timing_redecides_a_running_pass_at_each_see() -> None:
     dec = sim.decision(s)
     assert torch.equal(dec.holder, torch.zeros(6, dtype=torch.long))
     assert torch.equal(dec.must_decide, sees_now(s.clock, phase)[:, 0])
-    cycle = KeepawaySimulator(6, KeepawayConfig(perception="server"), seed=2)
+    cycle = KeepawaySimulator(6, KeepawayConfig(**{**EXACT, "perception": "server"}), seed=2)
     assert not cycle.decision(s).must_decide.any()  # "cycle" timing: the pass runs on
 
 
@@ -344,7 +345,7 @@ def test_options_give_one_line_errors(compose_train) -> None:
     ):
         with pytest.raises(ConfigError, match=message):
             compose_train("domain=keepaway", override)
-    # a saved config from before the option: the simulator's default
+    # a saved config from before the option: the exact task it was trained on (the defaults then)
     assert make_keepaway_config(compose_train("domain=keepaway", "~domain.perception")).perception == "exact"
 
 

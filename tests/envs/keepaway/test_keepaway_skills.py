@@ -203,9 +203,9 @@ def test_moving_ball_is_intercepted_on_its_path() -> None:
 
 
 def _played_state(batch: int, preset: str) -> tuple:
-    from hfrl_torch.envs.keepaway import KeepawayConfig, KeepawaySimulator, hand_coded_actions
+    from hfrl_torch.envs.keepaway import TASKS, KeepawayConfig, KeepawaySimulator, hand_coded_actions
 
-    sim = KeepawaySimulator(batch, KeepawayConfig(preset=preset), seed=3)
+    sim = KeepawaySimulator(batch, KeepawayConfig(preset=preset, **TASKS["exact"]), seed=3)
     for _ in range(25):
         obs, _ = sim.observe(sim.decision().holder)
         sim.step(hand_coded_actions(obs, 3, 2), auto_reset=True)
