@@ -10,7 +10,13 @@ import pytest
 import torch
 
 from hfrl_torch.common.errors import ConfigError
-from hfrl_torch.envs.keepaway import TASKS, KeepawayConfig, KeepawaySimulator, hand_coded_actions
+from hfrl_torch.envs.keepaway import (
+    TASKS,
+    KeepawayConfig,
+    KeepawaySimulator,
+    hand_coded_actions,
+    saved_config,
+)
 from hfrl_torch.envs.keepaway.params import physics_preset
 from hfrl_torch.envs.keepaway.perception import (
     COLLISION_BALL_GAP,
@@ -347,6 +353,9 @@ def test_options_give_one_line_errors(compose_train) -> None:
             compose_train("domain=keepaway", override)
     # a saved config from before the option: the exact task it was trained on (the defaults then)
     assert make_keepaway_config(compose_train("domain=keepaway", "~domain.perception")).perception == "exact"
+    # a checkpoint's domain_config from before the options (evaluate.py): the exact task, not today's default
+    assert saved_config({"preset": "rcss19"}) == KeepawayConfig(preset="rcss19", **EXACT)
+    assert saved_config(dataclasses.asdict(KeepawayConfig())) == KeepawayConfig()
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
