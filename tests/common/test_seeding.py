@@ -35,7 +35,9 @@ def test_the_pg_agent_and_its_oracle_trainer_draw_differently(tmp_path):
     from hfrl_torch.experiment.cli import compose_train
     from hfrl_torch.experiment.registry import learner_for
 
-    cfg = compose_train("agent=pg", "trainer=oracle", "logger.backend=none", "agent.learners=2", "agent.games=2")
+    cfg = compose_train(
+        "agent=pg", "trainer=oracle", "logger.backend=none", "agent.learners=2", "agent.games=2"
+    )
     learner = learner_for(cfg.agent.name, cfg.domain.name)(cfg, tmp_path)
     oracle = learner.trainer.trainer  # the oracle inside its human-like timing
     agent_draws = torch.rand(8, generator=learner.pg.generator)
