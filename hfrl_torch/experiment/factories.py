@@ -20,6 +20,7 @@ from hfrl_torch.agents.tamer import TamerAgent
 from hfrl_torch.agents.tamer.deep_tamer import DeepTamer
 from hfrl_torch.agents.tamer.keeper_tamer import KeeperTamer
 from hfrl_torch.common.checkpoint import load_checkpoint
+from hfrl_torch.common.seeding import component_generator, component_seed
 from hfrl_torch.common.threads import available_threads
 from hfrl_torch.envs.keepaway import KeepawayConfig, saved_config
 from hfrl_torch.envs.tetris import engine_torch
@@ -88,7 +89,7 @@ def make_env(
         engine=cfg.domain.engine,
         max_pieces=cfg.domain.max_pieces if max_pieces is None else max_pieces,
         device=make_device(cfg),
-        seed=cfg.seed,
+        seed=component_seed(cfg.seed, "env"),
     )
 
 
@@ -196,7 +197,10 @@ def make_trainer(cfg: DictConfig, log: FeedbackLog | None) -> Trainer | None:
         return None
     if t.name == "oracle":
         base: Trainer = OracleTrainer(
-            frequency=t.frequency, consistency=t.consistency, seed=int(cfg.seed) * 2 + 1, reaction=t.reaction
+            frequency=t.frequency,
+            consistency=t.consistency,
+            seed=component_seed(cfg.seed, "trainer"),
+            reaction=t.reaction,
         )
     elif t.name == "value_proxy":
         base = ValueProxyTrainer(mode=t.mode, scale=t.scale, reaction=t.reaction)
@@ -213,7 +217,7 @@ def make_trainer(cfg: DictConfig, log: FeedbackLog | None) -> Trainer | None:
         positive_bias=timing.positive_bias,
         absence=timing.absence,
         tail_lines=timing.tail_lines,
-        seed=int(cfg.seed) * 2 + 2,
+        seed=component_seed(cfg.seed, "timing"),
         log=log,
     )
 
@@ -239,7 +243,7 @@ def make_reference_keepers(
     choose, _ = load_keeper_policy(
         load_checkpoint(str(reference), domain="keepaway"),
         "cpu",
-        torch.Generator().manual_seed(int(cfg.seed) + 7),
+        component_generator(cfg.seed, "reference"),
     )
 
     def reference_actions(obs: torch.Tensor, keeper: torch.Tensor) -> torch.Tensor:
@@ -265,7 +269,7 @@ def make_keeper_trainer(
         frequency=t.frequency,
         consistency=t.consistency,
         delay=GammaDelay(timing.delay_shape, timing.delay_scale) if on else float(t.reaction),
-        seed=int(cfg.seed) * 2 + 1,
+        seed=component_seed(cfg.seed, "trainer"),
         log=log,
         fatigue_tau=timing.fatigue_tau if on else None,
         positive_bias=float(timing.positive_bias) if on else 0.0,
@@ -330,13 +334,13 @@ def make_fusion(
     cfg: DictConfig,
     learner: type[Learner],
     learners: int = 1,
-    seed: int = 0,
     option: str | None = None,
 ) -> Fusion:
     """The one fusion component of a run of ``learner``: ``fusion``'s rules, the weight for what the learner
     gives it (``Learner.weight_evidence``) and the scale (``Learner.default_scaling`` unless
     ``fusion.normalise`` says), for ``learners`` learners (``option``: a learner's own rule instead, e.g.
-    TAMER's ``human_only``)."""
+    TAMER's ``human_only``); its draws are the run's ``fusion`` stream."""
+    seed = component_seed(cfg.seed, "fusion")
     if option is not None and option != cfg.fusion.name:
         return Fusion.from_option(option, ConstantWeight([0.0] * learners), seed=seed)
     schedule = make_weight(cfg, learners, learner.weight_evidence)
@@ -372,7 +376,7 @@ def make_keepers(cfg: DictConfig, config: KeepawayConfig, device: torch.device) 
         min_trace=a.min_trace,
         max_traces=a.max_traces,
         share_weights=a.share_weights,
-        seed=int(cfg.seed),
+        seed=component_seed(cfg.seed, "agent"),
         device=device,
         kernels=str(a.get("kernels", "auto")),
     )
@@ -401,7 +405,7 @@ def make_dqn(
         double=bool(a.double),
         buffer_size=int(a.buffer_size),
         batch_size=int(a.batch_size),
-        seed=2 * int(cfg.seed) + 11,
+        seed=component_seed(cfg.seed, "replay"),
     )
 
 
@@ -422,7 +426,7 @@ def make_deep_tamer(
         buffer_size=int(h.buffer_size),
         batch_size=int(h.batch_size),
         replay_every=int(h.replay_every),
-        seed=2 * int(cfg.seed) + 13,
+        seed=component_seed(cfg.seed, "human_model"),
     )
 
 

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from omegaconf import DictConfig, OmegaConf
 
 from hfrl_torch.common.errors import ConfigError
+from hfrl_torch.common.seeding import component_seed
 from hfrl_torch.common.validation import require_float
 from hfrl_torch.fusion.bandit import BanditWeight
 from hfrl_torch.fusion.paired import PairedWeight
@@ -48,7 +49,6 @@ EVIDENCE = {
     "searched": "searches the weight as part of its own search",
 }
 UNWEIGHTED = ("none", "human_only")  # fusion options that use no weight
-BANDIT_SEED_OFFSET = 7  # the bandit's draws: seed 2 * cfg.seed + 7
 
 
 @dataclass(frozen=True)
@@ -123,7 +123,7 @@ def _bandit(cfg: DictConfig, learners: int) -> WeightSchedule:
         float(a.discount),
         prior_count=float(a.prior_count),
         prior_trust=float(a.prior_trust),
-        seed=2 * int(cfg.seed) + BANDIT_SEED_OFFSET,
+        seed=component_seed(cfg.seed, "bandit"),
     )
 
 

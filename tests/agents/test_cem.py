@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from hfrl_torch.agents.cem import CEMConfig, CrossEntropyMethod
-from hfrl_torch.agents.cem.cem import _derived_seed
+from hfrl_torch.common.seeding import component_seed
 from hfrl_torch.envs.tetris.engine_numba import play
 from hfrl_torch.envs.tetris.features import BT, feature_size
 from hfrl_torch.envs.tetris.rules import TetrisRules
@@ -21,7 +21,7 @@ def test_update_keeps_the_elite_and_adds_noise():
         population=10, elite_fraction=0.2, initial_variance=4.0, noise="constant", noise_value=0.5
     )
     cem = CrossEntropyMethod(3, cfg, rollout, seed=0)
-    gen = torch.Generator().manual_seed(_derived_seed(0, 0, 0))
+    gen = torch.Generator().manual_seed(component_seed(0, "cem_candidates", 0))
     cand = 0.0 + 2.0 * torch.randn(10, 3, generator=gen, dtype=torch.float64)
     scores = cand[:, 0].round()
     elite = torch.argsort(scores, descending=True, stable=True)[:2]

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import torch
 
+from hfrl_torch.common.seeding import component_seed
 from hfrl_torch.common.stats import summarize
 
 # (weights [N, F], game seeds [N]) -> (lines [N], pieces [N], capped [N]: stopped by the piece limit),
@@ -44,12 +45,6 @@ class CEMConfig:
     @property
     def n_elite(self) -> int:
         return max(1, round(self.population * self.elite_fraction))
-
-
-def _derived_seed(seed: int, iteration: int, stream: int) -> int:
-    """A 62-bit seed for stream ``stream`` of iteration ``iteration`` (stateless, so resumable)."""
-    g = torch.Generator().manual_seed((seed * 1_000_003 + iteration * 7919 + stream) % (2**63 - 1))
-    return int(torch.randint(0, 2**62, (1,), generator=g, dtype=torch.int64))
 
 
 class CrossEntropyMethod:
@@ -103,13 +98,13 @@ class CrossEntropyMethod:
         """One CE iteration: sample, score on common games, refit; returns metrics of the iteration."""
         c = self.config
         t = self.iteration
-        gen = torch.Generator().manual_seed(_derived_seed(self.seed, t, 0))
+        gen = torch.Generator().manual_seed(component_seed(self.seed, "cem_candidates", t))
         std = self.variance.sqrt()
         candidates = self.mean + std * torch.randn(
             c.population, self.mean.numel(), generator=gen, dtype=torch.float64
         )
 
-        game_gen = torch.Generator().manual_seed(_derived_seed(self.seed, t, 1))
+        game_gen = torch.Generator().manual_seed(component_seed(self.seed, "cem_games", t))
         game_seeds = torch.randint(0, 2**62, (c.games_per_candidate,), generator=game_gen, dtype=torch.int64)
         weights = candidates.repeat_interleave(c.games_per_candidate, dim=0)
         seeds = game_seeds.repeat(c.population)
@@ -143,7 +138,7 @@ class CrossEntropyMethod:
     def evaluate_mean(self, games: int | None = None) -> torch.Tensor:
         """Lines per game of the current mean weights on fresh games of this iteration."""
         n = self.config.eval_games if games is None else games
-        gen = torch.Generator().manual_seed(_derived_seed(self.seed, self.iteration, 2))
+        gen = torch.Generator().manual_seed(component_seed(self.seed, "cem_eval", self.iteration))
         seeds = torch.randint(0, 2**62, (n,), generator=gen, dtype=torch.int64)
         lines, pieces, capped, *_ = self.rollout(self.mean.expand(n, -1), seeds)
         self.last_eval_pieces = int(pieces.sum())

@@ -43,6 +43,7 @@ from torchrl.modules import EGreedyModule
 from hfrl_torch import keys
 from hfrl_torch.agents.dqn import ChosenEstimate, DeepQ, HumanValues, HumanValuesModule
 from hfrl_torch.common.logger import Logger
+from hfrl_torch.common.seeding import component_seed
 from hfrl_torch.common.stats import summarize
 from hfrl_torch.experiment.factories import make_fusion
 from hfrl_torch.experiment.learners.tetris_games import TRAINER_LABELS
@@ -67,20 +68,22 @@ class DeepQLearner(Learner):
         super().__init__(cfg, run_dir, checkpoint)
         a = cfg.agent
         self.seed = int(cfg.seed)
-        torch.manual_seed(self.seed)  # network initialisation and TorchRL's exploration draws
+        torch.manual_seed(component_seed(self.seed, "agent"))  # network initialisation, TorchRL's exploration
         self.boards, self.steps_per_batch = int(a.boards), int(a.steps_per_batch)
         self.frames_total, self.eval_every = int(a.frames), int(a.eval_every)
         self.taught = cfg.trainer.name != "none"
         self.log: FeedbackLog | None = None
         if self.taught:
             self.log = FeedbackLog(run_dir / "feedback.jsonl", session=run_dir.name, fsync=False)
-        self.fusion: Fusion = make_fusion(cfg, type(self), 1, seed=2 * self.seed + 5)
+        self.fusion: Fusion = make_fusion(cfg, type(self), 1)
         self.dqn = self.make_dqn()
         self.human: HumanValues | None = self.make_human() if self.taught else None
         self.feedback_transform = self.make_feedback() if self.taught else None
         self.reward_fusion = FeedbackFusion(self.fusion, estimate_key=keys.HUMAN_REWARD_ESTIMATE)
         parts = [*self.domain_transforms(), *filter(None, [self.feedback_transform]), self.reward_fusion]
-        self.env = TransformedEnv(self.make_env(self.boards, self.seed + 1), Compose(*parts))
+        self.env = TransformedEnv(
+            self.make_env(self.boards, component_seed(self.seed, "env")), Compose(*parts)
+        )
         self.explore = None
         if self.fusion.explores:
             self.explore = EGreedyModule(

@@ -24,6 +24,7 @@ from torchrl.envs.transforms import Transform
 from hfrl_torch import keys
 from hfrl_torch.agents.dqn import DeepQ, HumanValues, TeamSteps
 from hfrl_torch.agents.dqn.team_steps import CYCLES_PER_SECOND
+from hfrl_torch.common.seeding import component_seed
 from hfrl_torch.common.stats import summarize
 from hfrl_torch.envs.keepaway import KeepawayConfig, KeepawayEnv
 from hfrl_torch.experiment.checks import check_keepaway_dqn
@@ -38,8 +39,6 @@ from hfrl_torch.experiment.learners.deep_q import DeepQLearner
 from hfrl_torch.models.mlp import ActionMLP
 from hfrl_torch.models.tile_coding import keepaway_tile_widths
 from hfrl_torch.trainers.keeper_transform import KeeperFeedback
-
-EVAL_SEED_OFFSET = 10_007
 
 
 def keeper_scale(config: KeepawayConfig) -> list[float]:
@@ -106,7 +105,9 @@ class KeepawayDQN(DeepQLearner):
         return nxt[keys.EPISODE_CYCLES].reshape(-1).to(torch.float64) / CYCLES_PER_SECOND
 
     def greedy_evaluation(self) -> dict[str, float]:
-        env = KeepawayEnv(self.eval_episodes, self.config, seed=self.seed + EVAL_SEED_OFFSET, sync="all")
+        env = KeepawayEnv(
+            self.eval_episodes, self.config, seed=component_seed(self.seed, "eval_games"), sync="all"
+        )
         seconds, _ = play_episodes(env, self.greedy_policy, self.fusion)
         s = summarize(seconds, floor=0.0)
         return {f"{self.score_key}_{k}": s[k] for k in ("mean", "median", "ci95_low", "ci95_high")}

@@ -55,6 +55,7 @@ from hfrl_torch import keys
 from hfrl_torch.common.checkpoint import CheckpointWarning
 from hfrl_torch.common.errors import CheckpointError
 from hfrl_torch.common.logger import Logger
+from hfrl_torch.common.seeding import component_seed
 from hfrl_torch.envs.keepaway import KeepawayEnv
 from hfrl_torch.envs.keepaway.records import (
     CYCLES_PER_HOUR,
@@ -115,7 +116,7 @@ class SarsaKeepers(Learner):
         if self.taught:
             # a person's presses cannot be regenerated: fsync each; simulated events can
             self.log = FeedbackLog(run_dir / "feedback.jsonl", session=run_dir.name, fsync=self.person)
-            self.fusion = make_fusion(cfg, type(self), fields, seed=int(cfg.seed) * 2 + 3)
+            self.fusion = make_fusion(cfg, type(self), fields)
             if self.person:
                 log = self.log
                 self.teaching = make_live_teaching(
@@ -151,7 +152,7 @@ class SarsaKeepers(Learner):
             else "any"
         )
         env = KeepawayEnv(
-            fields, config, device=device, seed=int(cfg.seed) + 1_000_003 * self.resumes, sync=sync
+            fields, config, device=device, seed=component_seed(cfg.seed, "env", self.resumes), sync=sync
         )
         self.sim, self.sim_env = env.sim, env
         self.reward_fusion = self._reward_fusion() if self.taught else None

@@ -41,11 +41,11 @@ from tqdm import tqdm
 
 from hfrl_torch import keys
 from hfrl_torch.agents.cem import CrossEntropyMethod
-from hfrl_torch.agents.cem.cem import _derived_seed
 from hfrl_torch.agents.cem.fused_rollout import FusedRollout
 from hfrl_torch.agents.tamer.tamer import placement_deltas
 from hfrl_torch.common.errors import CheckpointError
 from hfrl_torch.common.logger import Logger
+from hfrl_torch.common.seeding import component_seed
 from hfrl_torch.common.stats import summarize
 from hfrl_torch.envs.tetris.env import TetrisEnv
 from hfrl_torch.envs.tetris.features import feature_id, feature_names
@@ -193,10 +193,10 @@ class CEMLearner(Learner):
         metrics: dict[str, float] = {}
         if self.taught:
             weight = float(self.fusion.weight()[0])  # 0 for none and human_only
-            self.fusion.generator.manual_seed(_derived_seed(self.cfg.seed, t, 4))
+            self.fusion.generator.manual_seed(component_seed(self.cfg.seed, "cem_fusion", t))
             watched = dict.fromkeys(("env_return", "fused_return", "placements", "given", "positive"), 0.0)
             if bool(self.departure.present(torch.tensor(t), self.clock)):  # the trainer's game
-                watched = self.watch_game(_derived_seed(self.cfg.seed, t, 3), t)
+                watched = self.watch_game(component_seed(self.cfg.seed, "watched_game", t), t)
             if self.teaching is not None:  # the browser trainer: Ctrl-C ends the person's game and the chunk
                 if self.teaching.session.ending == "stopping":
                     return []  # the game's presses are learned and in the log; resumed, the round is redone

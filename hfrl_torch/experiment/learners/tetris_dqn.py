@@ -20,6 +20,7 @@ from torchrl.envs.transforms import Transform
 from hfrl_torch import keys
 from hfrl_torch.agents.dqn import CHOOSABLE, DeepQ, HumanValues, SharedLinearTamer, choosable_module
 from hfrl_torch.agents.tamer.tamer import placement_deltas
+from hfrl_torch.common.seeding import component_seed
 from hfrl_torch.common.stats import summarize
 from hfrl_torch.envs.tetris.features import feature_id, feature_names, feature_size
 from hfrl_torch.experiment.checks import check_tetris_dqn
@@ -33,8 +34,6 @@ from hfrl_torch.experiment.factories import (
 from hfrl_torch.experiment.learners.deep_q import DeepQLearner
 from hfrl_torch.models.mlp import AfterstateMLP
 from hfrl_torch.trainers.transform import HumanFeedback
-
-EVAL_SEED_OFFSET = 10_007  # the evaluation games: seeds that training does not play
 
 
 def tetris_q_model(cfg: Any) -> AfterstateMLP:
@@ -106,7 +105,7 @@ class TetrisDQN(DeepQLearner):
         env = make_env(
             self.cfg, games, features=self.env_features, max_pieces=int(self.cfg.agent.eval_max_pieces)
         )
-        env.set_seed(self.seed + EVAL_SEED_OFFSET)
+        env.set_seed(component_seed(self.seed, "eval_games"))
         lines, _ = play_games(env, self.greedy_policy, self.fusion)
         s = summarize(lines, floor=0.0)
         return {f"{self.score_key}_{k}": s[k] for k in ("mean", "median", "ci95_low", "ci95_high")}

@@ -26,6 +26,7 @@ from hfrl_torch import keys
 from hfrl_torch.agents.tamer import TamerAgent
 from hfrl_torch.agents.tamer.tamer import placement_deltas
 from hfrl_torch.common.logger import Logger
+from hfrl_torch.common.seeding import component_generator
 from hfrl_torch.common.stats import summarize
 from hfrl_torch.envs.tetris.env import TetrisEnv
 from hfrl_torch.envs.tetris.features import feature_id, feature_names, feature_size
@@ -97,7 +98,7 @@ class TetrisGames(Learner):
             self.departure = make_departure(cfg)
         else:
             self.trainer, self.human = None, None
-        self.fusion = make_fusion(cfg, type(self), L, seed=2 * int(cfg.seed) + 5, option=self.fusion_option)
+        self.fusion = make_fusion(cfg, type(self), L, option=self.fusion_option)
         self.fuse = FusionModule(self.fusion, select=self.select)
         if checkpoint is None:
             self.td = self.env.reset()
@@ -328,7 +329,7 @@ class TetrisGames(Learner):
     def greedy_evaluation(self, weights: torch.Tensor, features: str, games: int) -> dict[str, float]:
         """Each learner's greedy policy on the same ``games`` fresh games: the mean lines per game of each
         learner, summarised over the learners (the policies without exploration)."""
-        gen = torch.Generator().manual_seed(int(self.cfg.seed) + 10_007)  # games that training did not play
+        gen = component_generator(self.cfg.seed, "eval_games")  # games that training did not play
         seeds = torch.randint(0, 2**62, (games,), generator=gen, dtype=torch.int64)
         rollout = make_rollout(self.cfg, features=features)
         lines, _, _ = rollout(weights.repeat_interleave(games, 0), seeds.repeat(self.learners))

@@ -22,6 +22,7 @@ from tensordict import TensorDictBase
 
 from hfrl_torch import keys
 from hfrl_torch.agents.pg import PolicyGradient
+from hfrl_torch.common.seeding import component_seed
 from hfrl_torch.envs.tetris.features import feature_id, feature_size
 from hfrl_torch.experiment.checks import check_pg
 from hfrl_torch.experiment.learners.tetris_games import TetrisGames
@@ -51,7 +52,7 @@ class PolicyGradientLearner(TetrisGames):
             a.damping,
             a.games_per_update,
             a.baseline_decay,
-            seed=2 * int(cfg.seed) + 1,
+            seed=component_seed(cfg.seed, "agent"),
         )
         L, G = int(a.learners), int(a.games)
         self.used_weight = torch.zeros(L, G, dtype=torch.float64)

@@ -16,6 +16,7 @@ from tensordict import TensorDictBase
 
 from hfrl_torch import keys
 from hfrl_torch.agents.qlearning import LinearQLearning
+from hfrl_torch.common.seeding import component_seed
 from hfrl_torch.envs.tetris.features import feature_id, feature_size
 from hfrl_torch.experiment.checks import check_qlearning
 from hfrl_torch.experiment.learners.tetris_games import TetrisGames
@@ -47,7 +48,7 @@ class QLearningLearner(TetrisGames):
             int(a.learners),
             a.alpha,
             a.gamma,
-            seed=2 * int(cfg.seed) + 1,
+            seed=component_seed(cfg.seed, "agent"),
         )
         self.td_error = torch.zeros(int(a.learners), int(a.games), dtype=torch.float64)
         self.abs_delta = torch.zeros(int(a.learners), dtype=torch.float64)  # summed over the current game
