@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 import numba
 import torch
@@ -29,6 +32,7 @@ from hfrl_torch.envs.tetris.env import TetrisEnv
 from hfrl_torch.envs.tetris.features import feature_id, feature_size
 from hfrl_torch.envs.tetris.rules import TetrisRules
 from hfrl_torch.experiment.run import Learner
+from hfrl_torch.feedback.channel import FeedbackChannel
 from hfrl_torch.feedback.credit import CreditModel, GammaDelay, PreviousStep, UniformDelay
 from hfrl_torch.feedback.log import FeedbackLog
 from hfrl_torch.fusion.fusion import Fusion
@@ -313,6 +317,48 @@ def make_live_teaching(
         path = trainer.log.path.with_name(JOURNAL_NAME)
         session.journal = PressJournal(path, trainer.log, session.reaction_s, trainer.discrete)
     return LiveTeaching.start(server, session, trainer)
+
+
+@dataclass
+class FeedbackWiring:
+    """What carries one run's feedback to its learner: the log every event is written to, the trainer (a
+    simulated one, a replayed log, or a person's presses drained from the page), the channel its events wait
+    in on each board's clock, when a simulated trainer leaves, and the page server when a person teaches."""
+
+    log: FeedbackLog
+    trainer: Any
+    channel: FeedbackChannel | None
+    departure: Departure
+    teaching: LiveTeaching | None = None
+
+
+def make_feedback_wiring(
+    cfg: DictConfig,
+    run_dir: Path,
+    fusion: Fusion,
+    simulated: Callable[[FeedbackLog], Any],
+    live: Callable[[TeachingSession, FeedbackLog], BrowserTetrisTrainer | BrowserKeeperTrainer] | None = None,
+    view: str = "tetris",
+    boards: int | None = None,
+    fsync_simulated: bool = True,
+) -> FeedbackWiring:
+    """The feedback wiring of every learner with a trainer, built in one place: the run's
+    ``feedback.jsonl`` (a person's presses are fsync'd one by one, as they cannot be regenerated; simulated
+    events where ``fsync_simulated``), the trainer (``live``'s drain of the page for ``trainer=interactive``,
+    else ``simulated``'s), a channel of ``boards`` boards (None: the learner's transform keeps its own) and
+    the trainer's departure."""
+    person = cfg.trainer.name == "interactive"
+    log = FeedbackLog(run_dir / "feedback.jsonl", session=run_dir.name, fsync=person or fsync_simulated)
+    teaching = None
+    if person:
+        if live is None:
+            raise ValueError(f"trainer=interactive has no page for view {view!r}")
+        teaching = make_live_teaching(cfg, view, fusion, lambda session: live(session, log))
+        trainer = teaching.trainer
+    else:
+        trainer = simulated(log)
+    channel = None if boards is None else FeedbackChannel(boards)
+    return FeedbackWiring(log, trainer, channel, make_departure(cfg), teaching)
 
 
 # ------------------------------------------------------------------------------ fusion

@@ -74,6 +74,16 @@ class FeedbackChannel:
         """Each queued event's ``SOURCE_KINDS`` code ``[B, capacity]``; a view of the queue."""
         return torch.from_numpy(self._source)
 
+    def collect(self, trainer: Any, clock: Tensor) -> None:
+        """Queue what a trainer that gives at its own times (a person, a replayed log: ``trainer.poll``) has
+        given by each board's ``clock`` [B]; a trainer that judges steps (``give``) has no ``poll``."""
+        poll = getattr(trainer, "poll", None)
+        while poll is not None:
+            values, times = poll(clock)
+            if not bool((values != 0).any()):
+                break
+            self.put(values, times, trainer.source)
+
     def put(self, values: Tensor, times: Tensor, source: str | Tensor) -> None:
         """Queue one event per board where ``values`` [B] is nonzero, given at ``times`` [B] seconds.
 

@@ -62,12 +62,7 @@ class KeeperFeedback(Transform):
         channel.put(values, times, self.trainer.source)
         cycles = next_tensordict.get(keys.STEP_CYCLES).reshape(-1).cpu().to(torch.float64)
         self.clock = self.clock + cycles / CYCLES_PER_SECOND
-        poll = getattr(self.trainer, "poll", None)  # a replay: events come whenever they came
-        while poll is not None:
-            polled, at = poll(self.clock)
-            if not bool((polled != 0).any()):
-                break
-            channel.put(polled, at, self.trainer.source)
+        channel.collect(self.trainer, self.clock)
         next_tensordict.update(channel.deliver(self.clock).reshape(batch))
         next_tensordict.set(keys.CLOCK, self.clock.clone().reshape(batch))
         return next_tensordict

@@ -45,7 +45,7 @@ from hfrl_torch.agents.dqn import ChosenEstimate, DeepQ, HumanValues, HumanValue
 from hfrl_torch.common.logger import Logger
 from hfrl_torch.common.seeding import component_seed
 from hfrl_torch.common.stats import summarize
-from hfrl_torch.experiment.factories import make_fusion
+from hfrl_torch.experiment.factories import make_feedback_wiring, make_fusion
 from hfrl_torch.experiment.learners.tetris_games import TRAINER_LABELS
 from hfrl_torch.experiment.run import Learner, Point, WallClockSaves
 from hfrl_torch.feedback.log import FeedbackLog
@@ -73,12 +73,14 @@ class DeepQLearner(Learner):
         self.frames_total, self.eval_every = int(a.frames), int(a.eval_every)
         self.taught = cfg.trainer.name != "none"
         self.log: FeedbackLog | None = None
-        if self.taught:
-            self.log = FeedbackLog(run_dir / "feedback.jsonl", session=run_dir.name, fsync=False)
         self.fusion: Fusion = make_fusion(cfg, type(self), 1)
         self.dqn = self.make_dqn()
         self.human: HumanValues | None = self.make_human() if self.taught else None
-        self.feedback_transform = self.make_feedback() if self.taught else None
+        self.feedback_transform = None
+        if self.taught:  # the trainer's transform keeps its own channel: its boards are the env's
+            wiring = make_feedback_wiring(cfg, run_dir, self.fusion, self.make_trainer, fsync_simulated=False)
+            self.log = wiring.log
+            self.feedback_transform = self.make_feedback(wiring.trainer)
         self.reward_fusion = FeedbackFusion(self.fusion, estimate_key=keys.HUMAN_REWARD_ESTIMATE)
         parts = [*self.domain_transforms(), *filter(None, [self.feedback_transform]), self.reward_fusion]
         self.env = TransformedEnv(
@@ -141,8 +143,12 @@ class DeepQLearner(Learner):
         """H^ of ``human``, shared by the boards."""
 
     @abstractmethod
-    def make_feedback(self) -> Transform:
-        """The trainer as a transform (writes ``keys.FEEDBACK*`` and ``keys.CLOCK`` into ``next``)."""
+    def make_trainer(self, log: FeedbackLog) -> Any:
+        """The simulated (or replayed) trainer of ``trainer``, logging to ``log``."""
+
+    @abstractmethod
+    def make_feedback(self, trainer: Any) -> Transform:
+        """``trainer`` as a transform (writes ``keys.FEEDBACK*`` and ``keys.CLOCK`` into ``next``)."""
 
     @abstractmethod
     def episode_performance(self, nxt: TensorDictBase) -> torch.Tensor:

@@ -36,8 +36,11 @@ from hfrl_torch.experiment.factories import (
     make_shared_tile_tamer,
 )
 from hfrl_torch.experiment.learners.deep_q import DeepQLearner
+from hfrl_torch.feedback.log import FeedbackLog
 from hfrl_torch.models.mlp import ActionMLP
 from hfrl_torch.models.tile_coding import keepaway_tile_widths
+from hfrl_torch.trainers.keepaway_oracle import KeepawayOracle
+from hfrl_torch.trainers.keepaway_replay import KeepawayReplay
 from hfrl_torch.trainers.keeper_transform import KeeperFeedback
 
 
@@ -95,8 +98,11 @@ class KeepawayDQN(DeepQLearner):
             )
         return make_shared_tile_tamer(self.cfg, self.config, self.boards)
 
-    def make_feedback(self) -> Transform:
-        return KeeperFeedback(make_keeper_trainer(self.cfg, self.config, self.boards, self.log))
+    def make_trainer(self, log: FeedbackLog) -> KeepawayOracle | KeepawayReplay:
+        return make_keeper_trainer(self.cfg, self.config, self.boards, log)
+
+    def make_feedback(self, trainer: KeepawayOracle | KeepawayReplay) -> Transform:
+        return KeeperFeedback(trainer)
 
     def watched_seconds(self, nxt: TensorDictBase) -> float:
         return float(nxt[keys.STEP_CYCLES].sum()) / CYCLES_PER_SECOND

@@ -65,18 +65,16 @@ from hfrl_torch.envs.keepaway.records import (
 )
 from hfrl_torch.experiment.checks import check_keepaway_feedback, check_sarsa
 from hfrl_torch.experiment.factories import (
-    make_departure,
     make_device,
+    make_feedback_wiring,
     make_fusion,
     make_keepaway_config,
     make_keeper_tamer,
     make_keeper_trainer,
     make_keepers,
-    make_live_teaching,
 )
 from hfrl_torch.experiment.learners.tetris_games import TRAINER_LABELS
 from hfrl_torch.experiment.run import Learner, Point
-from hfrl_torch.feedback.channel import FeedbackChannel
 from hfrl_torch.feedback.log import FeedbackLog
 from hfrl_torch.fusion.transform import FeedbackFusion, FusionModule
 from hfrl_torch.interactive.keepaway_live import BrowserKeeperTrainer, KeepawayWatcher, wait_for_teacher
@@ -114,23 +112,23 @@ class SarsaKeepers(Learner):
         self.teaching: LiveTeaching | None = None
         self.resumes = self.time_windows = self.episode_windows = 0  # windows: points closed so far
         if self.taught:
-            # a person's presses cannot be regenerated: fsync each; simulated events can
-            self.log = FeedbackLog(run_dir / "feedback.jsonl", session=run_dir.name, fsync=self.person)
             self.fusion = make_fusion(cfg, type(self), fields)
-            if self.person:
-                log = self.log
-                self.teaching = make_live_teaching(
-                    cfg, "keepaway", self.fusion, lambda session: BrowserKeeperTrainer(session, fields, log)
-                )
-                self.trainer = self.teaching.trainer
-            else:
-                self.trainer = make_keeper_trainer(cfg, config, fields, self.log)
+            wiring = make_feedback_wiring(
+                cfg,
+                run_dir,
+                self.fusion,
+                lambda log: make_keeper_trainer(cfg, config, fields, log),
+                lambda session, log: BrowserKeeperTrainer(session, fields, log),
+                view="keepaway",
+                boards=fields,
+                fsync_simulated=False,
+            )
+            self.log, self.trainer, self.teaching = wiring.log, wiring.trainer, wiring.teaching
+            self.channel, self.departure = wiring.channel, wiring.departure
             self.tamer, self.owners = make_keeper_tamer(cfg, self.agent_sarsa, fields, self.n)
             self.fuse = FusionModule(self.fusion)
-            self.channel = FeedbackChannel(fields)
             self.feedback = torch.zeros(fields, dtype=torch.int64)  # events learned from, per learner
             self.positive = torch.zeros(fields, dtype=torch.int64)
-            self.departure = make_departure(cfg)
             # the human effort of each field's episode in progress: events given, cycles the trainer watched
             self.episode_given = torch.zeros(fields, dtype=torch.int64)
             self.episode_watched = torch.zeros(fields, dtype=torch.int64)
@@ -399,13 +397,8 @@ class SarsaKeepers(Learner):
 
     def _deliver(self, after: TensorDictBase) -> None:
         """The feedback due on each field's clock into the step's tensordict; H^ learns from it."""
-        poll = getattr(self.trainer, "poll", None)  # a person or a replay: events come whenever they come
         clock = self.clock
-        while poll is not None:
-            values, times = poll(clock)
-            if not bool((values != 0).any()):
-                break
-            self.channel.put(values, times, self.trainer.source)
+        self.channel.collect(self.trainer, clock)
         while True:
             fb = self.channel.deliver(clock)
             given = fb[keys.FEEDBACK_MASK]

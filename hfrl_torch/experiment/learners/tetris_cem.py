@@ -52,9 +52,8 @@ from hfrl_torch.envs.tetris.features import feature_id, feature_names
 from hfrl_torch.experiment.checks import check_cem
 from hfrl_torch.experiment.factories import (
     make_cem_config,
-    make_departure,
+    make_feedback_wiring,
     make_fusion,
-    make_live_teaching,
     make_rollout,
     make_rules,
     make_tamer,
@@ -63,7 +62,6 @@ from hfrl_torch.experiment.factories import (
 )
 from hfrl_torch.experiment.learners.tetris_games import TRAINER_LABELS
 from hfrl_torch.experiment.run import Learner, Point
-from hfrl_torch.feedback.channel import FeedbackChannel
 from hfrl_torch.feedback.log import FeedbackLog
 from hfrl_torch.fusion.transform import FeedbackFusion, FusionModule
 from hfrl_torch.interactive.live import LiveTeaching
@@ -123,25 +121,21 @@ class CEMLearner(Learner):
         self.fusion = make_fusion(cfg, type(self), 1)
         self.human_names = feature_names(feature_id(h.features), self.rules.width)
         self.human = make_tamer(cfg, 1, len(self.human_names))
-        self.channel = FeedbackChannel(1)
         self.clock = 0.0
         self.seconds_per_placement = float(h.seconds_per_placement)
-        self.log = FeedbackLog(run_dir / "feedback.jsonl", session=run_dir.name)
-        if cfg.trainer.name == "interactive":
-            log = self.log
-            self.teaching = make_live_teaching(
-                cfg, "tetris", self.fusion, lambda session: BrowserTetrisTrainer(session, log)
-            )
+        wiring = make_feedback_wiring(
+            cfg, run_dir, self.fusion, lambda log: make_trainer(cfg, log), BrowserTetrisTrainer, boards=1
+        )
+        self.log, self.trainer, self.teaching = wiring.log, wiring.trainer, wiring.teaching
+        self.channel, self.departure = wiring.channel, wiring.departure
+        if self.teaching is not None:
             self.page = TetrisPage(self.teaching.session, int(cfg.agent.iterations))
-            self.trainer = self.teaching.trainer
             self.who = "a person in the browser (human:browser)"
         else:
-            self.trainer = make_trainer(cfg, self.log)
             source = (
                 self.trainer.source if self.trainer.source != "trainer" else f"simulated:{cfg.trainer.name}"
             )
             self.who = f"{source} (trainer={cfg.trainer.name}; a simulated or replayed trainer, not a person)"
-        self.departure = make_departure(cfg)
         self.watched = TransformedEnv(
             TetrisEnv(batch=1, rules=self.rules, features=h.features, max_pieces=cfg.agent.watch_pieces),
             FeedbackFusion(self.fusion),

@@ -32,7 +32,9 @@ from hfrl_torch.experiment.factories import (
     make_trainer,
 )
 from hfrl_torch.experiment.learners.deep_q import DeepQLearner
+from hfrl_torch.feedback.log import FeedbackLog
 from hfrl_torch.models.mlp import AfterstateMLP
+from hfrl_torch.trainers import Trainer
 from hfrl_torch.trainers.transform import HumanFeedback
 
 
@@ -91,8 +93,11 @@ class TetrisDQN(DeepQLearner):
             make_tamer(self.cfg, self.boards, feature_size(feature_id(h.features), width))
         )
 
-    def make_feedback(self) -> Transform:
-        return HumanFeedback(make_trainer(self.cfg, self.log), float(self.cfg.human.seconds_per_placement))
+    def make_trainer(self, log: FeedbackLog) -> Trainer:
+        return make_trainer(self.cfg, log)
+
+    def make_feedback(self, trainer: Trainer) -> Transform:
+        return HumanFeedback(trainer, float(self.cfg.human.seconds_per_placement))
 
     def watched_seconds(self, nxt: TensorDictBase) -> float:
         return self.boards * float(self.cfg.human.seconds_per_placement)

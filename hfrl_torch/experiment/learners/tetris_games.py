@@ -31,8 +31,8 @@ from hfrl_torch.common.stats import summarize
 from hfrl_torch.envs.tetris.env import TetrisEnv
 from hfrl_torch.envs.tetris.features import feature_id, feature_names, feature_size
 from hfrl_torch.experiment.factories import (
-    make_departure,
     make_env,
+    make_feedback_wiring,
     make_fusion,
     make_rollout,
     make_rules,
@@ -40,7 +40,6 @@ from hfrl_torch.experiment.factories import (
     make_trainer,
 )
 from hfrl_torch.experiment.run import Learner, Point, WallClockSaves
-from hfrl_torch.feedback.channel import FeedbackChannel
 from hfrl_torch.feedback.log import FeedbackLog
 from hfrl_torch.fusion.transform import FusionModule
 
@@ -88,17 +87,19 @@ class TetrisGames(Learner):
         self.log: FeedbackLog | None = None
         if self.taught and cfg.trainer.name != "none":
             h = cfg.human
-            self.log = FeedbackLog(run_dir / "feedback.jsonl", session=run_dir.name)
-            self.trainer = make_trainer(cfg, self.log)
-            self.channel = FeedbackChannel(L)
             self.human: TamerAgent | None = make_tamer(
                 cfg, L, feature_size(feature_id(h.features), self.rules.width)
             )
             self.seconds_per_placement = float(h.seconds_per_placement)
-            self.departure = make_departure(cfg)
         else:
             self.trainer, self.human = None, None
         self.fusion = make_fusion(cfg, type(self), L, option=self.fusion_option)
+        if self.human is not None:
+            wiring = make_feedback_wiring(
+                cfg, run_dir, self.fusion, lambda log: make_trainer(cfg, log), boards=L
+            )
+            self.log, self.trainer = wiring.log, wiring.trainer
+            self.channel, self.departure = wiring.channel, wiring.departure
         self.fuse = FusionModule(self.fusion, select=self.select)
         if checkpoint is None:
             self.td = self.env.reset()
