@@ -15,10 +15,13 @@ only the first ``used`` input columns, so a Q over the BT features can share the
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import torch
 from torch import nn
 from torchrl.modules import MLP
+
+from hfrl_torch.models.tile_coding import keepaway_tile_widths
 
 __all__ = ["ActionMLP", "AfterstateMLP"]
 
@@ -97,3 +100,9 @@ class ActionMLP(nn.Module):
     def select(inputs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """What a replay entry keeps of a decision: the state ``[B, S]`` (the action is stored beside it)."""
         return inputs
+
+
+def keeper_scale(config: Any) -> list[float]:
+    """Input scale of the keepers' networks: one over ten tile widths of each state variable (``config``: a
+    ``KeepawayConfig``, its keepers and takers)."""
+    return [1.0 / (10.0 * w) for w in keepaway_tile_widths(config.keepers, config.takers)]

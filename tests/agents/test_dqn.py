@@ -213,17 +213,18 @@ def test_evaluate_plays_dqn_checkpoints_of_both_domains(tmp_path, run_learner):
     from omegaconf import OmegaConf
 
     from hfrl_torch.envs.keepaway import KeepawayConfig
-    from hfrl_torch.experiment.dqn_players import evaluate_dqn_keepaway, evaluate_dqn_tetris
+    from hfrl_torch.experiment.keepaway_evaluation import evaluate_keepaway_checkpoint
+    from hfrl_torch.experiment.tetris_evaluation import evaluate_tetris_checkpoint
 
     run_learner(tmp_path / "t", *TETRIS, "fusion=linear", *TAUGHT)
     ckpt = load_checkpoint(tmp_path / "t")
     cfg = OmegaConf.merge(OmegaConf.create(ckpt["config"]), {"games": 3, "seed": 1})
-    result = evaluate_dqn_tetris(cfg, ckpt, "t")
+    result = evaluate_tetris_checkpoint(cfg, ckpt)
     assert result["games"] == 3 and result["mean"] >= 0
     run_learner(tmp_path / "k", *KEEPAWAY)
     ckpt = load_checkpoint(tmp_path / "k")
-    result = evaluate_dqn_keepaway(
-        OmegaConf.create({"episodes": 4, "seed": 1}), ckpt, KeepawayConfig(**ckpt["domain_config"]), "k"
+    result = evaluate_keepaway_checkpoint(
+        OmegaConf.create({"episodes": 4, "seed": 1}), ckpt, KeepawayConfig(**ckpt["domain_config"])
     )
     assert result["episodes"] == 4 and result["mean_s"] > 0
 

@@ -160,7 +160,8 @@ class DeepQLearner(Learner):
 
     @abstractmethod
     def policy_payload(self) -> dict[str, Any]:
-        """What ``evaluate.py`` plays."""
+        """What ``evaluate.py`` plays: the checkpoint's ``"policy"``, written with
+        :func:`~hfrl_torch.agents.policies.export_policy`."""
 
     @abstractmethod
     def watched_seconds(self, nxt: TensorDictBase) -> float:

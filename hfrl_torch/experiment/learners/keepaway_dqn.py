@@ -24,6 +24,7 @@ from torchrl.envs.transforms import Transform
 from hfrl_torch import keys
 from hfrl_torch.agents.dqn import DeepQ, HumanValues, TeamSteps
 from hfrl_torch.agents.dqn.team_steps import CYCLES_PER_SECOND
+from hfrl_torch.agents.policies import export_policy
 from hfrl_torch.common.seeding import component_seed
 from hfrl_torch.common.stats import summarize
 from hfrl_torch.envs.keepaway import KeepawayConfig, KeepawayEnv
@@ -37,16 +38,10 @@ from hfrl_torch.experiment.factories import (
 )
 from hfrl_torch.experiment.learners.deep_q import DeepQLearner
 from hfrl_torch.feedback.log import FeedbackLog
-from hfrl_torch.models.mlp import ActionMLP
-from hfrl_torch.models.tile_coding import keepaway_tile_widths
+from hfrl_torch.models.mlp import ActionMLP, keeper_scale
 from hfrl_torch.trainers.keepaway_oracle import KeepawayOracle
 from hfrl_torch.trainers.keepaway_replay import KeepawayReplay
 from hfrl_torch.trainers.keeper_transform import KeeperFeedback
-
-
-def keeper_scale(config: KeepawayConfig) -> list[float]:
-    """Input scale of the keepers' networks: one over ten tile widths of each state variable."""
-    return [1.0 / (10.0 * w) for w in keepaway_tile_widths(config.keepers, config.takers)]
 
 
 def keepaway_q_model(cfg: Any, config: KeepawayConfig) -> ActionMLP:
@@ -120,7 +115,6 @@ class KeepawayDQN(DeepQLearner):
 
     def policy_payload(self) -> dict[str, Any]:
         payload: dict[str, Any] = {
-            "kind": "dqn",
             "cells": list(self.cfg.agent.cells),
             "q": self.dqn.model.state_dict(),
             "fusion": self.fusion_payload(),
@@ -141,7 +135,7 @@ class KeepawayDQN(DeepQLearner):
                     "size": coder.size,
                     "weights": coder.weight.detach().clone(),
                 }
-        return payload
+        return export_policy("keepaway_dqn", **payload)
 
     def checkpoint(self) -> dict[str, Any]:
         return {**super().checkpoint(), "domain_config": asdict(self.config)}

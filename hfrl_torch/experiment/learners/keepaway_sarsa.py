@@ -52,6 +52,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import TransformedEnv
 
 from hfrl_torch import keys
+from hfrl_torch.agents.policies import export_policy
 from hfrl_torch.common.checkpoint import CheckpointWarning
 from hfrl_torch.common.errors import CheckpointError
 from hfrl_torch.common.logger import Logger
@@ -507,18 +508,18 @@ class SarsaKeepers(Learner):
                 "q_spread": self.fusion.q_spread.tolist(),
                 "weight": self.fusion.weight().tolist(),
             }
-        policy = {
-            "kind": "tile_sarsa",
-            "tile_widths": agent.coder.widths.tolist(),
-            "tilings": agent.coder.tilings,
-            "size": agent.coder.size,
-            "num_actions": agent.coder.num_actions,
-            "learners": "(field // fields_per_learner) * keepers + keeper",
-            "fields_per_learner": a.fields_per_learner,
-            "teams": int(a.learners),
-            "share_weights": bool(a.share_weights),
-            "human": human,
-        }
+        policy = export_policy(  # its weight tables are the state's (state -> agent -> weight)
+            "tile_sarsa",
+            tile_widths=agent.coder.widths.tolist(),
+            tilings=agent.coder.tilings,
+            size=agent.coder.size,
+            num_actions=agent.coder.num_actions,
+            learners="(field // fields_per_learner) * keepers + keeper",
+            fields_per_learner=a.fields_per_learner,
+            teams=int(a.learners),
+            share_weights=bool(a.share_weights),
+            human=human,
+        )
         return {"state": state, "policy": policy, "domain_config": asdict(self.config)}
 
     def _play_state(self) -> dict[str, Any]:

@@ -42,6 +42,7 @@ from tqdm import tqdm
 from hfrl_torch import keys
 from hfrl_torch.agents.cem import CrossEntropyMethod
 from hfrl_torch.agents.cem.fused_rollout import FusedRollout
+from hfrl_torch.agents.policies import export_policy
 from hfrl_torch.agents.tamer.tamer import placement_deltas
 from hfrl_torch.common.errors import CheckpointError
 from hfrl_torch.common.logger import Logger
@@ -369,13 +370,13 @@ class CEMLearner(Learner):
     # ---------------------------------------------------------------- checkpoints
 
     def checkpoint(self) -> dict[str, Any]:
-        policy: dict[str, Any] = {
-            "kind": "linear",
+        linear: dict[str, Any] = {
             "features": self.cfg.domain.features,
             "feature_names": self.names,
             "weights": self.value_weights.clone(),
         }
         if not self.taught:
+            policy = export_policy("linear", **linear)
             return {"state": self.cem.state_dict(), "policy": policy, "rules": self.rules.as_dict()}
         state = {
             "cem": self.cem.state_dict(),
@@ -386,8 +387,9 @@ class CEMLearner(Learner):
             "clock": self.clock,
             "log_seq": self.log.last_seq,  # the last event of each session the learner has been given
         }
-        policy.update(
-            kind="fused",
+        policy = export_policy(
+            "fused",
+            **linear,
             scheme=self.fusion.decision,
             weight=float(self.fusion.weight()[0]),
             normalise=self.fusion.scaling == "decision",

@@ -19,6 +19,7 @@ from torchrl.envs.transforms import Transform
 
 from hfrl_torch import keys
 from hfrl_torch.agents.dqn import CHOOSABLE, DeepQ, HumanValues, SharedLinearTamer, choosable_module
+from hfrl_torch.agents.policies import export_policy
 from hfrl_torch.agents.tamer.tamer import placement_deltas
 from hfrl_torch.common.seeding import component_seed
 from hfrl_torch.common.stats import summarize
@@ -118,7 +119,6 @@ class TetrisDQN(DeepQLearner):
     def policy_payload(self) -> dict[str, Any]:
         a, width = self.cfg.agent, int(self.cfg.domain.width)
         payload: dict[str, Any] = {
-            "kind": "dqn",
             "env_features": self.env_features,
             "features": str(a.features),
             "feature_names": feature_names(feature_id(str(a.features)), width),
@@ -134,7 +134,7 @@ class TetrisDQN(DeepQLearner):
             else:
                 human["weights"] = self.human.weight.detach().clone()
             payload["human"] = human
-        return payload
+        return export_policy("tetris_dqn", **payload)
 
 
 @torch.no_grad()

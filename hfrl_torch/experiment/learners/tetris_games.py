@@ -23,6 +23,7 @@ from omegaconf import DictConfig
 from tensordict import TensorDictBase
 
 from hfrl_torch import keys
+from hfrl_torch.agents.policies import export_policy
 from hfrl_torch.agents.tamer import TamerAgent
 from hfrl_torch.agents.tamer.tamer import placement_deltas
 from hfrl_torch.common.logger import Logger
@@ -133,7 +134,8 @@ class TetrisGames(Learner):
         """Restore :meth:`learner_state`'s output."""
 
     def policy(self) -> dict[str, Any]:
-        """What ``evaluate.py`` plays (learner 0's linear afterstate policy)."""
+        """What ``evaluate.py`` plays (learner 0's linear afterstate policy), written with
+        :func:`~hfrl_torch.agents.policies.export_policy` (:meth:`linear_policy` does)."""
         return {}
 
     # ---------------------------------------------------------------- the loop
@@ -319,13 +321,13 @@ class TetrisGames(Learner):
 
     def linear_policy(self, features: str, weights: torch.Tensor, note: str) -> dict[str, Any]:
         """A linear afterstate policy over ``features`` (``evaluate.py`` plays it)."""
-        return {
-            "kind": "linear",
-            "features": features,
-            "feature_names": feature_names(feature_id(features), self.rules.width),
-            "weights": weights.clone(),
-            "note": note,
-        }
+        return export_policy(
+            "linear",
+            features=features,
+            feature_names=feature_names(feature_id(features), self.rules.width),
+            weights=weights.clone(),
+            note=note,
+        )
 
     def greedy_evaluation(self, weights: torch.Tensor, features: str, games: int) -> dict[str, float]:
         """Each learner's greedy policy on the same ``games`` fresh games: the mean lines per game of each
