@@ -80,7 +80,9 @@ class DeepQLearner(Learner):
         self.feedback_transform = self.make_feedback() if self.taught else None
         self.reward_fusion = FeedbackFusion(self.fusion, estimate_key=keys.HUMAN_REWARD_ESTIMATE)
         parts = [*self.domain_transforms(), *filter(None, [self.feedback_transform]), self.reward_fusion]
-        self.env = TransformedEnv(self.make_env(self.boards, self.seed + 1), Compose(*parts))
+        self.env = TransformedEnv(
+            self.make_env(self.boards, self.seed + 1), Compose(*parts), auto_unwrap=True
+        )
         self.explore = None
         if self.fusion.explores:
             self.explore = EGreedyModule(
