@@ -686,6 +686,7 @@ def check_gym_domain(cfg: DictConfig) -> None:
     if OmegaConf.select(cfg, "domain.max_episode_steps") is not None:
         require_int(cfg, "domain.max_episode_steps", 1)
     require_float(cfg, "domain.seconds_per_step", 1e-6)
+    require_float(cfg, "domain.min_return")
     require_int(cfg, "domain.batch", 1, 4096)
     gym_spaces(cfg)
 

@@ -146,7 +146,7 @@ def _policy(cfg: DictConfig) -> tuple[str, GymTask, TensorDictSequential, Fusion
     payload = ckpt.get("policy")
     if not isinstance(payload, dict) or payload.get("kind") != "dqn":
         raise CheckpointError(f"checkpoint {ckpt['path']!r} holds no gym DQN policy")
-    task = make_gym_task(OmegaConf.create({"domain": payload["task"]}))
+    task = make_gym_task(OmegaConf.create({"domain": dict(payload["task"].items())}))
     policy, fusion = dqn_policy(payload)
     fused = payload.get("fusion")
     plays = "DQN, Q alone" if fused is None else f"DQN, Q fused with H^ ({fused['scheme']})"

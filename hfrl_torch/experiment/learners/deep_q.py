@@ -147,6 +147,11 @@ class DeepQLearner(Learner):
     def episode_performance(self, nxt: TensorDictBase) -> torch.Tensor:
         """Each board's performance ``[B]`` for the episode that ended at this step (lines, hold seconds)."""
 
+    def fusion_performance(self, performance: float) -> float:
+        """What an ended episode's performance counts for in the fusion's weight (eq. 4.4, the bandit), which
+        needs it >= 0: the performance itself here (lines, hold seconds)."""
+        return performance
+
     @abstractmethod
     def greedy_evaluation(self) -> dict[str, float]:
         """The greedy policy on the evaluation episodes (the same ones at every point)."""
@@ -232,7 +237,7 @@ class DeepQLearner(Learner):
                 for p in perf.tolist():
                     if self.taught:
                         self.weights_played.append(float(self.fusion.weight()[0]))
-                        self.fusion.end_episode(torch.ones(1, dtype=torch.bool), p)
+                        self.fusion.end_episode(torch.ones(1, dtype=torch.bool), self.fusion_performance(p))
                     self.finished.append(float(p))
                 self.episodes += int(done.sum())
         self.dqn.extend(batch)

@@ -64,8 +64,8 @@ class GymDQN(DeepQLearner):
     """DQN over the observation of any discrete-action task on ``agent.boards`` copies (module docstring)."""
 
     domain = "gym"
-    default_scaling = "spread"  # H^ times Q's running spread: with two actions, per-decision rescaling
-    # leaves R and H^ as 0 and 1 each, and a weight below 1 could never let H^ overturn Q
+    default_scaling = "none"  # Q + w H^ raw: with two actions, per-decision rescaling leaves R and H^ as 0
+    # and 1 each (a weight below 1 never lets H^ overturn Q), and Q's spread starts near 0 (H^ times it too)
 
     @classmethod
     def check(cls, cfg: DictConfig) -> None:
@@ -111,6 +111,11 @@ class GymDQN(DeepQLearner):
 
     def episode_performance(self, nxt: TensorDictBase) -> torch.Tensor:
         return nxt[keys.EPISODE_REWARD].reshape(-1).to(torch.float64)
+
+    def fusion_performance(self, performance: float) -> float:
+        """The return above ``domain.min_return`` (0 below it): the trust factor and the bandit weigh
+        episodes by a performance >= 0, and MountainCar's or Acrobot's returns are negative."""
+        return max(0.0, performance - float(self.cfg.domain.min_return))
 
     def greedy_evaluation(self) -> dict[str, float]:
         env = gym_env(self.task, self.eval_episodes, self.seed + EVAL_SEED_OFFSET)
