@@ -65,7 +65,7 @@ class GymDQN(DeepQLearner):
 
     domain = "gym"
     default_scaling = "none"  # Q + w H^ raw: with two actions, per-decision rescaling leaves R and H^ as 0
-    # and 1 each (a weight below 1 never lets H^ overturn Q), and Q's spread starts near 0 (H^ times it too)
+    # and 1 each (a weight below 1 never lets H^ overturn Q); "spread" equals raw while Q's gaps stay under 1
 
     @classmethod
     def check(cls, cfg: DictConfig) -> None:
