@@ -13,6 +13,8 @@ DONE = "done"
 TERMINATED = "terminated"
 TRUNCATED = "truncated"
 RESET = "_reset"
+STEP_COUNT = "step_count"  # TorchRL's ``StepCounter``: steps taken in the episode so far
+EPISODE_REWARD = "episode_reward"  # TorchRL's ``RewardSum``: the environment's return of the episode so far
 
 # observations
 ACTION_MASK = "action_mask"

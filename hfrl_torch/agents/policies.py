@@ -7,7 +7,8 @@ writes with :func:`export_policy`; ``kind`` names the loader in :data:`POLICY_LO
   Q-learning and policy-gradient runs), played greedily;
 * ``fused``: CE's value fused with the trainer's H^ by the run's rule at its last weight (``scheme``,
   ``weight``, ``normalise``, ``human_features``, ``human_weights`` besides the linear keys);
-* ``tetris_dqn`` / ``keepaway_dqn``: the saved Q network (and, with a trainer, H^ and the fusion rule);
+* ``tetris_dqn`` / ``keepaway_dqn`` / ``gym_dqn``: the saved Q network (and, with a trainer, H^ and the
+  fusion rule); ``gym_dqn`` also keeps the ``task`` it learned, which ``evaluate.py`` plays it on;
 * ``tile_sarsa``: the keepaway Sarsa keepers' tile coding (and H^ by the run's fusion rule). Its weight
   tables stay where the run's state keeps them (``state -> agent -> weight``, ``state -> human ->
   human_weight``), so a checkpoint holds them once.
@@ -101,7 +102,7 @@ def policy_kind(checkpoint: dict[str, Any]) -> str:
         )
     kind = policy.get("kind")
     domain = checkpoint.get("domain")
-    if kind == "dqn" and domain in ("tetris", "keepaway"):
+    if kind == "dqn" and domain in ("tetris", "keepaway", "gym"):
         return f"{domain}_dqn"
     if kind is None and domain == "tetris" and "features" in policy and "weights" in policy:
         return "linear"
@@ -333,6 +334,21 @@ def _load_tetris_dqn(checkpoint: dict[str, Any], device: torch.device, generator
         "board_width": width,
         "afterstate": None,
     }
+    return module.to(device), info
+
+
+@register_policy_loader("gym_dqn")
+def _load_gym_dqn(checkpoint: dict[str, Any], device: torch.device, generator: torch.Generator) -> Loaded:
+    p = checkpoint["policy"]
+    size, actions, scale = int(p["observation_size"]), int(p["actions"]), p["scale"]
+    q = _load_state(ActionMLP(size, actions, p["cells"], scale), p["q"], "Q network")
+    human = None
+    h = p.get("human")
+    if p.get("fusion") is not None and h is not None:
+        model = _load_state(ActionMLP(size, actions, h["cells"], scale), h["model"], "H^ network")
+        human = _Values(lambda td: model(td.get(keys.OBSERVATION)))
+    module, fusion = _dqn_policy(q, keys.OBSERVATION, None, [], p, human, [keys.OBSERVATION])
+    info = {"fusion": fusion, "describe": f"DQN, {_fusion_words(p)}", "task": dict(p["task"])}
     return module.to(device), info
 
 

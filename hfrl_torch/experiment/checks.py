@@ -1,6 +1,7 @@
 """The checks of a run's config groups, each raising ``ConfigError`` with one line naming the bad value and
-what is allowed: the domains' (``check_tetris_domain``, ``check_keepaway_domain``), each learner's (which its
-class names as ``Learner.check``), and the parts they share (H^, trainers, fusion, kernels).
+what is allowed: the domains' (``check_tetris_domain``, ``check_keepaway_domain``, ``check_gym_domain``),
+each learner's (which its class names as ``Learner.check``), and the parts they share (H^, trainers, fusion,
+kernels).
 ``config.validate_train`` runs them through the registry; the ``make_*`` factories then check nothing.
 """
 
@@ -12,6 +13,7 @@ from collections.abc import Collection, Mapping, Sequence
 from dataclasses import fields
 from pathlib import Path
 
+import gymnasium as gym
 import torch
 from omegaconf import DictConfig, OmegaConf
 
@@ -21,6 +23,7 @@ from hfrl_torch.agents.sarsa.sarsa import trace_capacity
 from hfrl_torch.common.checkpoint import load_checkpoint
 from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.common.validation import require_bool, require_choice, require_float, require_int
+from hfrl_torch.envs.gym_task import TaskSpaces, task_spaces
 from hfrl_torch.envs.keepaway.params import (
     DECISION_TIMINGS,
     HOLD_RULES,
@@ -31,6 +34,7 @@ from hfrl_torch.envs.keepaway.params import (
 )
 from hfrl_torch.envs.tetris.env import ENGINES
 from hfrl_torch.envs.tetris.features import FEATURE_SETS
+from hfrl_torch.experiment.factories import make_gym_reference, make_gym_task
 from hfrl_torch.feedback.credit import CREDITS
 from hfrl_torch.fusion.schemes import FUSIONS
 from hfrl_torch.fusion.weights import UNWEIGHTED, check_weight
@@ -38,6 +42,7 @@ from hfrl_torch.interactive.live import KEY_NAMES
 from hfrl_torch.interactive.messages import MAX_SPEED, MIN_SPEED
 from hfrl_torch.models.tile_coding import MAX_SIZE
 from hfrl_torch.trainers.departure import LEAVE_UNITS
+from hfrl_torch.trainers.reference_oracle import right_actions
 
 TRAINERS = ("none", "oracle", "value_proxy", "replay", "interactive")
 KEEPAWAY_TRAINERS = ("none", "oracle", "replay", "interactive")
@@ -640,3 +645,99 @@ def check_keepaway_feedback_trainer(cfg: DictConfig) -> None:
     require_float(cfg, "trainer.reaction", 1e-6)
     if require_bool(cfg, "trainer.timing.enabled"):
         check_timing(cfg, tetris=False)
+
+
+# ------------------------------------------------------------------------------- gym
+
+GYM_TRAINERS = ("none", "oracle")
+
+
+def _task_key(cfg: DictConfig) -> str:
+    make = OmegaConf.select(cfg, "domain.make")
+    return f"domain.make={make!r}" if make is not None else f"domain.env_id={cfg.domain.env_id!r}"
+
+
+def gym_spaces(cfg: DictConfig) -> TaskSpaces:
+    """The spaces of ``domain=gym``'s task, built once; ``ConfigError`` for an unknown id, a callable that
+    does not import or fails, continuous actions or non-vector observations."""
+    task = make_gym_task(cfg)
+    where = _task_key(cfg)
+    try:
+        return task_spaces(task)
+    except gym.error.Error as exc:
+        raise ConfigError(f"{where} is not a Gymnasium task you can make here: {_first(exc)}") from None
+    except ValueError as exc:
+        raise ConfigError(f"{where} {_first(exc)}") from None
+    except Exception as exc:  # a user's factory may fail in any way
+        raise ConfigError(f"{where} failed to make the task: {type(exc).__name__}: {_first(exc)}") from None
+
+
+def _first(exc: BaseException) -> str:
+    return str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+
+
+def check_gym_domain(cfg: DictConfig) -> None:
+    """``domain=gym``: the task (a registered id or a callable) and that it has discrete actions and vector
+    observations, its time limit and the simulated trainer's clock."""
+    make = OmegaConf.select(cfg, "domain.make")
+    env_id = OmegaConf.select(cfg, "domain.env_id")
+    if make is None and (not isinstance(env_id, str) or not env_id):
+        raise ConfigError(f"domain.env_id={env_id!r} is invalid: name a Gymnasium id, or set domain.make")
+    if OmegaConf.select(cfg, "domain.max_episode_steps") is not None:
+        require_int(cfg, "domain.max_episode_steps", 1)
+    require_float(cfg, "domain.seconds_per_step", 1e-6)
+    require_float(cfg, "domain.min_return")
+    require_int(cfg, "domain.batch", 1, 4096)
+    gym_spaces(cfg)
+
+
+def check_gym_evaluation(cfg: DictConfig) -> None:
+    """``evaluate.py`` on ``domain=gym``: the episodes, the batch and the task (of ``policy=random`` or a
+    reference callable; a checkpoint brings its own)."""
+    require_int(cfg, "episodes", 1)
+    require_int(cfg, "domain.batch", 1, 4096)
+    policy = OmegaConf.select(cfg, "policy")
+    if policy in (None, "random") or (":" in str(policy) and not Path(str(policy)).exists()):
+        check_gym_domain(cfg)
+
+
+def check_gym_dqn(cfg: DictConfig) -> None:
+    """DQN on any task: H^ (Deep TAMER on the observation) and the oracle against ``trainer.reference``."""
+    check_dqn(cfg)
+    trainer = cfg.trainer.name
+    if trainer == "none":
+        return
+    if trainer not in GYM_TRAINERS:
+        raise ConfigError(f"trainer={trainer} is not available for domain=gym yet; allowed: none, oracle")
+    human = require_choice(cfg, "human.name", ("mlp",))
+    if human == "mlp":
+        check_mlp_human(cfg, placements=False)
+    check_gym_reference(cfg)
+    require_float(cfg, "trainer.frequency", 0.0, 1.0)
+    require_float(cfg, "trainer.consistency", 0.0, 1.0)
+    require_float(cfg, "trainer.reaction", 1e-6)
+    if require_bool(cfg, "trainer.timing.enabled"):
+        check_timing(cfg, tetris=False)
+
+
+def check_gym_reference(cfg: DictConfig) -> None:
+    """``trainer.reference``: a callable that imports and, on two of the task's observations, returns
+    actions [2] or action values [2, A]."""
+    reference = OmegaConf.select(cfg, "trainer.reference")
+    if reference is None:
+        raise ConfigError(
+            "trainer=oracle on domain=gym needs trainer.reference=<package.module:callable>, a policy of "
+            "observations [B, S] returning actions [B] or action values [B, A] "
+            "(e.g. examples.cartpole:reference)"
+        )
+    policy = make_gym_reference(cfg)
+    spaces = gym_spaces(cfg)
+    try:
+        right_actions(policy, spaces.sample.clone(), spaces.actions)
+    except ValueError as exc:
+        raise ConfigError(f"trainer.reference={reference!r} {_first(exc)}") from None
+    except Exception as exc:  # the user's policy may fail in any way
+        raise ConfigError(
+            f"trainer.reference={reference!r} failed on observations of shape {list(spaces.sample.shape)}: "
+            f"{type(exc).__name__}: {_first(exc)}"
+        ) from None

@@ -23,8 +23,10 @@ from hfrl_torch.agents.tamer import TamerAgent
 from hfrl_torch.agents.tamer.deep_tamer import DeepTamer
 from hfrl_torch.agents.tamer.keeper_tamer import KeeperTamer
 from hfrl_torch.common.checkpoint import load_checkpoint
+from hfrl_torch.common.imports import load_callable
 from hfrl_torch.common.seeding import component_generator, component_seed
 from hfrl_torch.common.threads import available_threads
+from hfrl_torch.envs.gym_task import GymTask
 from hfrl_torch.envs.keepaway import KeepawayConfig, saved_config
 from hfrl_torch.envs.tetris import engine_torch
 from hfrl_torch.envs.tetris.engine_numba import play as numba_play
@@ -50,6 +52,7 @@ from hfrl_torch.trainers import HumanLikeTiming, OracleTrainer, ReplayTrainer, T
 from hfrl_torch.trainers.departure import Departure
 from hfrl_torch.trainers.keepaway_oracle import KeepawayOracle
 from hfrl_torch.trainers.keepaway_replay import KeepawayReplay
+from hfrl_torch.trainers.reference_oracle import Reference, ReferenceOracle
 
 # ------------------------------------------------------------------------------- run
 
@@ -210,7 +213,13 @@ def make_trainer(cfg: DictConfig, log: FeedbackLog | None) -> Trainer | None:
         base = ValueProxyTrainer(mode=t.mode, scale=t.scale, reaction=t.reaction)
     else:
         base = ReplayTrainer.from_log(t.log, reaction=t.reaction)
-    timing = t.timing
+    return with_timing(cfg, base, log)
+
+
+def with_timing(cfg: DictConfig, base: Trainer, log: FeedbackLog | None) -> Trainer:
+    """``base`` with ``trainer.timing``'s human-like delays, fatigue, bias and absences when enabled (the
+    log goes to the outer trainer)."""
+    timing = cfg.trainer.timing
     if not timing.enabled:
         base.log = log
         return base
@@ -435,7 +444,7 @@ def make_dqn(
     cfg: DictConfig,
     model: torch.nn.Module,
     in_key: str,
-    mask_key: str,
+    mask_key: str | None,
     pre: tuple[TensorDictModule, ...] = (),
 ) -> DeepQ:
     """The DQN of ``agent`` (TorchRL's loss, target and replay buffer) around the Q network ``model``."""
@@ -482,3 +491,36 @@ def make_shared_tile_tamer(cfg: DictConfig, config: KeepawayConfig, fields: int)
         keepaway_tile_widths(config.keepers, config.takers), num_actions=config.num_actions, learners=1
     )
     return SharedTileTamer(keeper_tamer_on(cfg, model, fields))
+
+
+# ------------------------------------------------------------------------------- gym
+
+
+def make_gym_task(cfg: DictConfig) -> GymTask:
+    """The task of ``domain=gym``: ``domain.make``'s callable, else ``domain.env_id`` (``ConfigError`` if the
+    callable does not import)."""
+    d = cfg.domain
+    steps = OmegaConf.select(cfg, "domain.max_episode_steps")
+    make = OmegaConf.select(cfg, "domain.make")
+    if make is not None:
+        return GymTask(make=load_callable(make, "domain.make"))
+    return GymTask(env_id=str(d.env_id), max_episode_steps=None if steps is None else int(steps))
+
+
+def make_gym_reference(cfg: DictConfig) -> Reference:
+    """The reference policy ``trainer.reference`` names (observations [B, S] -> actions or action values)."""
+    return load_callable(cfg.trainer.reference, "trainer.reference")
+
+
+def make_gym_trainer(cfg: DictConfig, actions: int, log: FeedbackLog | None) -> Trainer:
+    """The simulated oracle of ``domain=gym`` against ``trainer.reference``, with ``trainer.timing``."""
+    t = cfg.trainer
+    base = ReferenceOracle(
+        make_gym_reference(cfg),
+        actions,
+        frequency=t.frequency,
+        consistency=t.consistency,
+        seed=component_seed(cfg.seed, "trainer"),
+        reaction=t.reaction,
+    )
+    return with_timing(cfg, base, log)

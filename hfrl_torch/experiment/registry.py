@@ -12,12 +12,16 @@ from omegaconf import DictConfig
 from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.common.validation import require_choice
 from hfrl_torch.experiment.checks import (
+    check_gym_domain,
+    check_gym_evaluation,
     check_keepaway_domain,
     check_keepaway_evaluation,
     check_tetris_domain,
     check_tetris_evaluation,
 )
+from hfrl_torch.experiment.gym_evaluation import evaluate_gym, format_gym_summary
 from hfrl_torch.experiment.keepaway_evaluation import evaluate_keepaway, format_keepaway_summary
+from hfrl_torch.experiment.learners.gym_dqn import GymDQN
 from hfrl_torch.experiment.learners.keepaway_dqn import KeepawayDQN
 from hfrl_torch.experiment.learners.keepaway_sarsa import SarsaKeepers
 from hfrl_torch.experiment.learners.tetris_cem import CEMLearner
@@ -80,6 +84,7 @@ for _learner in (
     TetrisDQN,
     SarsaKeepers,
     KeepawayDQN,
+    GymDQN,
 ):
     register_learner(_learner)
 register_domain(
@@ -94,6 +99,11 @@ register_domain(
         format_keepaway_summary,
         "sarsa",
         spread=True,
+    )
+)
+register_domain(  # any Gymnasium task or TorchRL env (domain.env_id, domain.make)
+    Domain(
+        "gym", check_gym_domain, check_gym_evaluation, evaluate_gym, format_gym_summary, "dqn", spread=True
     )
 )
 

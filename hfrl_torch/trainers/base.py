@@ -138,8 +138,13 @@ class Trainer(ABC):
 
 
 def placement_steps(obs: TensorDictBase) -> torch.Tensor:
-    """Index [B] of the placement about to be made within each board's game (0-based)."""
-    return obs[keys.PIECES_PLACED].reshape(-1).to(torch.int64)
+    """Index [B] of the step about to be taken within each board's episode (0-based): Tetris's placements,
+    else TorchRL's ``StepCounter`` count, else -1 (not known) on a task that counts neither."""
+    for key in (keys.PIECES_PLACED, keys.STEP_COUNT):
+        steps = obs.get(key, None)
+        if steps is not None:
+            return steps.reshape(-1).to(torch.int64)
+    return torch.full((obs.batch_size.numel(),), -1, dtype=torch.int64)
 
 
 def all_active(obs: TensorDictBase, active: torch.Tensor | None) -> torch.Tensor:

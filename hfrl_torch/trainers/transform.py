@@ -15,6 +15,7 @@ from typing import Any
 
 import torch
 from tensordict import TensorDictBase
+from tensordict.utils import NestedKey
 from torchrl.data import Binary, Composite, TensorSpec, Unbounded
 from torchrl.envs.transforms import Transform
 
@@ -26,19 +27,28 @@ __all__ = ["HumanFeedback"]
 
 
 class HumanFeedback(Transform):
-    """Write a Tetris trainer's feedback into each step's ``next`` (K slots per board; the module docstring).
+    """Write a trainer's feedback into each step's ``next`` (K slots per board; the module docstring).
 
     :param trainer: the trainer (``trainers.OracleTrainer``, ``HumanLikeTiming``, ``ReplayTrainer``...).
     :param seconds_per_step: the simulated clock's time per env step (a placement with its animation: 1 s).
     :param slots: K, the events one board can receive per step (more wait for the next steps).
+    :param score_key: the entry of ``next`` the trainer's ``end_games`` is told at an episode's end (Tetris's
+        lines); on a task without it (any Gymnasium env) the trainer is told the end with a score of 0.
     """
 
-    def __init__(self, trainer: Trainer, seconds_per_step: float = 1.0, slots: int = 4) -> None:
+    def __init__(
+        self,
+        trainer: Trainer,
+        seconds_per_step: float = 1.0,
+        slots: int = 4,
+        score_key: NestedKey = keys.LINES,
+    ) -> None:
         if not seconds_per_step > 0:
             raise ValueError(f"HumanFeedback seconds_per_step must be > 0, got {seconds_per_step!r}")
         out = [keys.FEEDBACK, keys.FEEDBACK_TIME, keys.FEEDBACK_MASK, keys.FEEDBACK_SOURCE, keys.CLOCK]
         super().__init__(in_keys=[keys.ACTION], out_keys=out)
         self.trainer, self.seconds_per_step, self.slots = trainer, float(seconds_per_step), int(slots)
+        self.score_key = score_key
         self.channel: FeedbackChannel | None = None
         self.steps = 0
         self._games: torch.Tensor | None = None
@@ -65,7 +75,9 @@ class HumanFeedback(Transform):
         next_tensordict.set(keys.CLOCK, torch.full(batch, self.clock, dtype=torch.float64))
         done = next_tensordict.get(keys.DONE).reshape(-1)
         if bool(done.any()):
-            self.trainer.end_games(done, next_tensordict.get(keys.LINES).reshape(-1))
+            score = next_tensordict.get(self.score_key, None)
+            score = torch.zeros(done.shape[0]) if score is None else score.reshape(-1)
+            self.trainer.end_games(done, score)
             self._games += done.to(torch.int64)
         return next_tensordict
 

@@ -16,8 +16,10 @@ from hfrl_torch.agents.policies import POLICY_LOADERS, export_policy, load_polic
 from hfrl_torch.common.checkpoint import load_checkpoint, save_checkpoint
 from hfrl_torch.common.errors import CheckpointError
 from hfrl_torch.common.logger import Logger
+from hfrl_torch.envs.gym_task import make_gym_batch
 from hfrl_torch.envs.keepaway import KeepawayConfig, KeepawayEnv
 from hfrl_torch.envs.tetris import TetrisEnv, TetrisRules
+from hfrl_torch.experiment.factories import make_gym_task
 from hfrl_torch.experiment.registry import LEARNERS, learner_for
 
 TETRIS = ["domain.width=6", "domain.height=8", "logger=none"]
@@ -25,6 +27,7 @@ KEEPAWAY = ["domain=keepaway", "logger=none"]
 DQN = ["agent=dqn", "agent.boards=2", "agent.cells=[8]", "agent.eval_episodes=2"]
 TAUGHT_DQN = ["trainer=oracle", "fusion=linear", "human=mlp", "human.cells=[8]"]
 SARSA = ["agent=sarsa", "agent.learners=2", "agent.table_bits=10"]
+GYM = ["domain=gym", "logger=none", "trainer.reference=examples.cartpole:reference"]
 
 # (case, overrides, the kind its checkpoint's policy has): every registered learner, taught or not
 CASES = [
@@ -44,6 +47,8 @@ CASES = [
         [*KEEPAWAY, *DQN, "trainer=oracle", "fusion=linear", "human=tile_coded"],
         "keepaway_dqn",
     ),
+    ("gym_dqn", [*GYM, *DQN], "gym_dqn"),
+    ("gym_dqn_fused", [*GYM, *DQN, *TAUGHT_DQN], "gym_dqn"),
 ]
 
 
@@ -70,6 +75,10 @@ def _observation(ckpt: dict, info: dict, boards: int = 3):
         env = TetrisEnv(boards, TetrisRules(width, 8), features=info["env_features"], engine="numba")
         env.set_seed(0)
         return env.reset(), None
+    if ckpt["domain"] == "gym":
+        env = make_gym_batch(make_gym_task(OmegaConf.create({"domain": info["task"]})), boards, seed=0)
+        td = env.reset()
+        return td.set(keys.ACTION_MASK, torch.ones(boards, env.action_spec.space.n, dtype=torch.bool)), None
     config = KeepawayConfig(**ckpt["domain_config"])
     return KeepawayEnv(boards, config, seed=0, sync="all").reset(), config
 
@@ -98,8 +107,8 @@ def test_every_learners_saved_policy_loads_to_a_module_that_acts(
     mask = td[keys.ACTION_MASK]
     assert bool(mask.gather(1, action.view(-1, 1)).all())  # only actions the env allows
     # the direct form the domain's batched player takes, where there is one
-    direct = info["afterstate"] if ckpt["domain"] == "tetris" else info["chooser"]
-    assert (direct is None) == kind.endswith("_dqn")
+    direct = {"tetris": "afterstate", "keepaway": "chooser"}.get(ckpt["domain"])
+    assert (direct is None or info[direct] is None) == kind.endswith("_dqn")
 
 
 def test_the_linear_module_chooses_the_best_safe_placement(tmp_path, compose_train):
@@ -130,7 +139,7 @@ def test_an_unknown_kind_is_refused_in_one_line_naming_it_and_the_allowed(bad):
         load_policy(ckpt)
     message = str(e.value)
     assert "\n" not in message and repr(bad) in message and "run/last.pt" in message
-    assert "allowed: fused, keepaway_dqn, linear, tetris_dqn, tile_sarsa" in message
+    assert "allowed: fused, gym_dqn, keepaway_dqn, linear, tetris_dqn, tile_sarsa" in message
 
 
 def test_export_refuses_a_kind_nothing_loads():

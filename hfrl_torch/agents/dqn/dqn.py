@@ -44,7 +44,7 @@ class DeepQ:
 
     :param model: the Q network (``AfterstateMLP`` or ``ActionMLP``).
     :param in_key: the observation it reads.
-    :param mask_key: the mask of the actions the greedy choice and the target's max may take.
+    :param mask_key: the mask of the actions the greedy choice and the target's max may take (None: all).
     :param pre: modules run before the network (Tetris: ``choosable_module()``).
     :param lr: Adam's step size.
     :param gamma: the discount per step.
@@ -59,7 +59,7 @@ class DeepQ:
         self,
         model: nn.Module,
         in_key: NestedKey,
-        mask_key: NestedKey,
+        mask_key: NestedKey | None,
         pre: tuple[TensorDictModule, ...] = (),
         *,
         lr: float = 1e-3,

@@ -84,7 +84,7 @@ class DeepQLearner(Learner):
         self.reward_fusion = FeedbackFusion(self.fusion, estimate_key=keys.HUMAN_REWARD_ESTIMATE)
         parts = [*self.domain_transforms(), *filter(None, [self.feedback_transform]), self.reward_fusion]
         self.env = TransformedEnv(
-            self.make_env(self.boards, component_seed(self.seed, "env")), Compose(*parts)
+            self.make_env(self.boards, component_seed(self.seed, "env")), Compose(*parts), auto_unwrap=True
         )
         self.explore = None
         if self.fusion.explores:
@@ -153,6 +153,11 @@ class DeepQLearner(Learner):
     @abstractmethod
     def episode_performance(self, nxt: TensorDictBase) -> torch.Tensor:
         """Each board's performance ``[B]`` for the episode that ended at this step (lines, hold seconds)."""
+
+    def fusion_performance(self, performance: float) -> float:
+        """What an ended episode's performance counts for in the fusion's weight (eq. 4.4, the bandit), which
+        needs it >= 0: the performance itself here (lines, hold seconds)."""
+        return performance
 
     @abstractmethod
     def greedy_evaluation(self) -> dict[str, float]:
@@ -240,7 +245,7 @@ class DeepQLearner(Learner):
                 for p in perf.tolist():
                     if self.taught:
                         self.weights_played.append(float(self.fusion.weight()[0]))
-                        self.fusion.end_episode(torch.ones(1, dtype=torch.bool), p)
+                        self.fusion.end_episode(torch.ones(1, dtype=torch.bool), self.fusion_performance(p))
                     self.finished.append(float(p))
                 self.episodes += int(done.sum())
         self.dqn.extend(batch)
