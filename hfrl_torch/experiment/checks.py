@@ -117,6 +117,7 @@ def check_cem(cfg: DictConfig) -> None:
         return
     check_human(cfg, "linear")
     require_int(cfg, "agent.watch_pieces", 1)
+    require_bool(cfg, "agent.alone_after_departure")
     if cfg.domain.features != "bt":
         raise ConfigError(
             f"domain.features={cfg.domain.features!r} with a trainer: CE + human feedback "

@@ -91,6 +91,27 @@ def test_annealed_weight_decays_by_its_factor_each_iteration(tmp_path):
     assert [r["fusion/weight"] for r in _curves(tmp_path)] == [1.0, 0.5, 0.25]
 
 
+@pytest.mark.parametrize("alone", [True, False])
+def test_once_the_trainer_has_left_the_candidates_are_ranked_on_r_alone(tmp_path, alone):
+    """agent.alone_after_departure: after the trainer's last iteration the population plays at weight 0
+    (R goes on improving past H^), while the mean policy is still tested at the fusion's weight."""
+    over = ["fusion=linear", "fusion.weight=1.0", "trainer=oracle", "trainer.leave_after=2"]
+    cfg = _cfg(*over, "agent.iterations=4", f"agent.alone_after_departure={alone}")
+    learner = CEMLearner(cfg, tmp_path, None)
+    played, step = [], learner.cem.step
+
+    def recording_step():
+        played.append(learner.rollout.weight)
+        return step()
+
+    learner.cem.step = recording_step
+    learn(learner, RunFiles(tmp_path, cfg))
+    assert played == ([None, None, 0.0, 0.0] if alone else [None] * 4)
+    assert learner.rollout.weight is None
+    assert [r["fusion/weight"] for r in _curves(tmp_path)] == [1.0] * 4
+    assert [r["feedback/trainer_present"] for r in _curves(tmp_path)] == [1.0, 1.0, 0.0, 0.0]
+
+
 def _run(script: str, *args: str) -> subprocess.CompletedProcess:
     """``python <script> <args>`` as a user types it, forked from a process that has made its imports."""
     return run_script(script, *args, timeout=300)

@@ -190,14 +190,19 @@ class CEMLearner(Learner):
             weight = float(self.fusion.weight()[0])  # 0 for none and human_only
             self.fusion.generator.manual_seed(component_seed(self.cfg.seed, "cem_fusion", t))
             watched = dict.fromkeys(("env_return", "fused_return", "placements", "given", "positive"), 0.0)
-            if bool(self.departure.present(torch.tensor(t), self.clock)):  # the trainer's game
+            present = bool(self.departure.present(torch.tensor(t), self.clock))
+            if present:  # the trainer's game
                 watched = self.watch_game(component_seed(self.cfg.seed, "watched_game", t), t)
+            if not present and self.cfg.agent.get("alone_after_departure", False):
+                self.rollout.weight = 0.0  # the candidates on R alone: R goes on improving past H^
             if self.teaching is not None:  # the browser trainer: Ctrl-C ends the person's game and the chunk
                 if self.teaching.session.ending == "stopping":
                     return []  # the game's presses are learned and in the log; resumed, the round is redone
                 self.page.practising(t)
             self.rollout.human_weights = self.human.model.weight[0].detach().clone()
         metrics.update(self.cem.step())
+        if self.taught:
+            self.rollout.weight = None
         searched = compared = None
         if self.searches_weight:
             searched = self.cem.mean[-1:].clone()
