@@ -34,17 +34,17 @@ CHECKED = "HFRL_TORCH_CHECKED"  # set once every job of this command was checked
 _HYDRA_FLAGS = ("help", "hydra_help", "version", "cfg", "info", "shell_completion", "experimental_rerun")
 
 
-def check_group_choices(overrides: list[str], conf_dir: Path = CONF_DIR) -> None:
-    """Exit with one line if a ``group=option`` names an option that does not exist (Hydra's own message
-    spans several lines and a hint; this one names the value and the allowed ones)."""
+def check_group_choices(overrides: list[str], conf_dirs: tuple[Path, ...] = (CONF_DIR,)) -> None:
+    """Exit with one line if a ``group=option`` names an option that does not exist in any of ``conf_dirs``
+    (Hydra's own message spans several lines and a hint; this one names the value and the allowed ones)."""
     for arg in overrides:
         if "=" not in arg:
             continue
         key, _, value = arg.lstrip("+~").partition("=")
-        group_dir = conf_dir / key
-        if "." in key or "/" in key or not group_dir.is_dir():
+        group_dirs = [d / key for d in conf_dirs if (d / key).is_dir()]
+        if "." in key or "/" in key or not group_dirs:
             continue
-        names = sorted(p.stem for p in group_dir.glob("*.yaml"))
+        names = sorted({p.stem for d in group_dirs for p in d.glob("*.yaml")})
         shown = [n for n in names if not n.startswith("default_")]
         for choice in value.split(","):  # a sweep lists several
             if choice not in names:
@@ -122,16 +122,26 @@ def precheck(argv: list[str], config_name: str, validate: Callable[[DictConfig],
         return  # a malformed command line: Hydra says what is wrong with it
     if any(getattr(args, flag, None) for flag in _HYDRA_FLAGS):
         return  # Hydra's own flags print or inspect the config; they run nothing
-    check_group_choices(args.overrides)
+    overrides, conf_dirs, added = list(args.overrides), (CONF_DIR,), ""
+    if args.config_dir:  # --config-dir: the user's own groups and options, searched as Hydra will
+        user = Path(args.config_dir).expanduser().resolve()
+        added = f"hydra.searchpath=[file://{user}]"
+        overrides.append(added)
+        conf_dirs = (CONF_DIR, user)
+
+    def shown(job: list[str]) -> str:
+        return " ".join(o for o in job if o != added)
+
+    check_group_choices(args.overrides, conf_dirs)
     try:
-        jobs, complete = job_overrides(args.overrides, config_name, bool(args.multirun))
+        jobs, complete = job_overrides(overrides, config_name, bool(args.multirun))
         runs: dict[str, int] = {}
         for i, job in enumerate(jobs):
             cfg, hydra = _split(config_name, job)
             same = runs.setdefault(_run_key(cfg), i)
             if same != i:
                 fail(
-                    f"jobs {same} ({' '.join(jobs[same])}) and {i} ({' '.join(job)}) are the same run"
+                    f"jobs {same} ({shown(jobs[same])}) and {i} ({shown(job)}) are the same run"
                     f"{_why_same(cfg)}: a sweep of duplicates counts one learner twice; sweep the setting "
                     "in its own command over the options it changes"
                 )
@@ -143,7 +153,7 @@ def precheck(argv: list[str], config_name: str, validate: Callable[[DictConfig],
                 validate(cfg)
                 check_fresh(_job_dir(hydra, i if args.multirun else None), resuming)
             except (UserError, ValueError) as exc:
-                where = f"job {i} ({' '.join(job)}): " if len(jobs) > 1 else ""
+                where = f"job {i} ({shown(job)}): " if len(jobs) > 1 else ""
                 fail(where + str(exc).splitlines()[0])
     except UserError as exc:
         fail(str(exc).splitlines()[0])

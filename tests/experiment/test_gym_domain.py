@@ -3,6 +3,8 @@ oracle against a user's reference policy, and the one-line errors before a run s
 
 from __future__ import annotations
 
+import os
+
 import pytest
 import torch
 from gym_task_helpers import make_countdown, walk_right, walk_right_values
@@ -12,7 +14,8 @@ from torchrl.envs import check_env_specs
 from hfrl_torch.common.checkpoint import load_checkpoint
 from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.envs.gym_task import GymTask, make_gym_batch, task_spaces
-from hfrl_torch.experiment.cli import compose_config
+from hfrl_torch.experiment.cli import CHECKED, compose_config, precheck
+from hfrl_torch.experiment.config import validate_train
 from hfrl_torch.experiment.gym_evaluation import evaluate_gym
 from hfrl_torch.experiment.learners.gym_dqn import gym_env
 from hfrl_torch.trainers.reference_oracle import ReferenceOracle
@@ -111,3 +114,25 @@ def test_fused_dqn_on_cartpole_beats_random_resumes_and_plays_back(run_learner, 
     played = evaluate_gym(compose_config("evaluate", "domain=gym", f"policy={tmp_path}", "episodes=8"))
     assert final["eval/greedy_return_mean"] > 1.5 * random["mean"]
     assert played["mean"] > 1.5 * random["mean"] and played["plays"].startswith("DQN, Q fused with H^")
+
+
+def test_a_users_config_dir_adds_a_domain_option_that_the_check_before_the_run_accepts(
+    tmp_path, monkeypatch
+) -> None:
+    """``train.py --config-dir <dir> domain=<their file>``: the check before the run searches the user's
+    directory as Hydra does (without it, the option is unknown, in one line)."""
+    monkeypatch.delenv(CHECKED, raising=False)
+    (tmp_path / "conf" / "domain").mkdir(parents=True)
+    (tmp_path / "conf" / "domain" / "mytask.yaml").write_text(
+        "defaults:\n  - gym\n  - _self_\nenv_id: CartPole-v1\nmax_episode_steps: 50\n"
+    )
+    job = ["domain=mytask", "agent=dqn", "human=mlp", f"hydra.run.dir={tmp_path / 'run'}"]
+    with pytest.raises(SystemExit) as stopped:
+        precheck(job, "train", validate_train)
+    assert stopped.value.code == 2
+    precheck(["--config-dir", str(tmp_path / "conf"), *job], "train", validate_train)
+    assert os.environ.get(CHECKED) == "1"  # every job checked, none refused
+    with pytest.raises(SystemExit):  # a bad value of the user's domain is still refused
+        precheck(
+            ["--config-dir", str(tmp_path / "conf"), *job, "domain.env_id=NoSuch-v0"], "train", validate_train
+        )
