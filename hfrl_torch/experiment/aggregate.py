@@ -4,8 +4,10 @@ Every run directory below the given ones (``config.yaml`` + ``metrics.jsonl``) i
 the values that differ between them other than the seed (a Hydra sweep's swept values), and each group gets
 its learning curve (mean and 95 % band over seeds), its final value (mean and 95 % interval) and, against
 the reference group (the first, or ``baseline=``), the difference with a permutation-test p-value: exact
-sign flips over seeds when both groups have the same seeds (paired), random relabelling otherwise. Runs
-without metrics (crashed, or killed before their first iteration) are listed and left out.
+sign flips over seeds when both groups have the same seeds (paired), random relabelling otherwise, and
+Cohen's d as the effect size (d_z when paired). With several conditions against the reference, Holm's
+correction adjusts their p-values for the family, and the verdicts use the adjusted ones. Runs without
+metrics (crashed, or killed before their first iteration) are listed and left out.
 
 With a trainer, each point of a learner's curve also carries the human effort behind it, as the field
 reports it (Knox & Stone's TAMER papers; Griffith et al. 2013): the feedback events given so far
@@ -14,8 +16,9 @@ the learner played at (``weight``). The report then adds an effort table (events
 the start and the end), and ``effort.png`` draws performance against feedback events and the weight over
 the curve's own axis.
 
-Writes ``summary.csv``, ``summary.md``, ``curves.png`` (and ``effort.png``) into ``out`` (default: the first
-directory), and the plots to TensorBoard as images.
+Writes ``summary.csv``, ``per_seed.csv`` (each learner's compared value, for a paper's own statistics),
+``summary.md``, ``curves.png`` (and ``effort.png``) into ``out`` (default: the first directory), and the
+plots to TensorBoard as images.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from __future__ import annotations
 import csv
 import itertools
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -330,6 +334,32 @@ def permutation_p(a: list[float], b: list[float], paired: bool, draws: int = 20_
     return float((((xa - xb).abs() >= observed - 1e-12).double().sum() + 1) / (draws + 1))
 
 
+def effect_size(a: list[float], b: list[float], paired: bool) -> float:
+    """Cohen's d of ``a`` against ``b``: paired, the mean difference over its standard deviation (d_z);
+    unpaired, the difference of means over the pooled standard deviation. NaN where no spread is defined."""
+    x, y = torch.tensor(a, dtype=torch.float64), torch.tensor(b, dtype=torch.float64)
+    if paired:
+        d = x - y
+        sd = float(d.std()) if d.numel() > 1 else math.nan
+        return float(d.mean()) / sd if sd > 0 else math.nan
+    if x.numel() < 2 or y.numel() < 2:
+        return math.nan
+    pooled = (((x.numel() - 1) * x.var() + (y.numel() - 1) * y.var()) / (x.numel() + y.numel() - 2)).sqrt()
+    return float(x.mean() - y.mean()) / float(pooled) if float(pooled) > 0 else math.nan
+
+
+def holm(p_values: list[float]) -> list[float]:
+    """Holm's step-down adjustment of ``p_values`` (the family of comparisons against one reference): the
+    i-th smallest p times (m - i + 1), kept monotone and at most 1."""
+    m = len(p_values)
+    order = sorted(range(m), key=lambda i: p_values[i])
+    adjusted, running = [0.0] * m, 0.0
+    for rank, i in enumerate(order):
+        running = max(running, min(1.0, (m - rank) * p_values[i]))
+        adjusted[i] = running
+    return adjusted
+
+
 def _ci(values: list[float]) -> dict[str, float]:
     return summarize(torch.tensor(values, dtype=torch.float64))
 
@@ -357,16 +387,17 @@ def report(
     smallest = (1.0, 0)  # the smallest p the exact sign-flip test can give at the fewest pairs compared
     md = [
         "| condition | runs | metric | final mean | 95 % interval | difference to reference "
-        "| p (permutation) |",
-        "|---|---|---|---|---|---|---|",
+        "| p (permutation) | effect size (d) |",
+        "|---|---|---|---|---|---|---|---|",
     ]
+
     for g in groups:
         if not g.y_key:
             md.append(f"| {g.label} | {len(g.runs)} | (no known learning curve in metrics.jsonl) | | | | |")
             continue
         finals = g.finals()
         s = _ci(list(finals.values()))
-        diff, p, kind = "", "", ""
+        diff, p, kind, d = "", "", "", ""
         if g is not ref and ref.y_key == g.y_key:
             ref_finals = ref.finals()
             paired = sorted(finals) == sorted(ref_finals)
@@ -376,6 +407,8 @@ def report(
             kind = "paired" if paired else "unpaired"
             if min(len(a), len(b)) >= 2:  # one run per condition: no spread, so no test
                 p = f"{permutation_p(a, b, paired):.3f}"
+                size = effect_size(a, b, paired)
+                d = "" if math.isnan(size) else f"{size:+.2f}"
                 if paired and len(a) <= 16:
                     smallest = min(smallest, (2 / 2 ** len(a), len(a)))
         rows.append(
@@ -392,6 +425,7 @@ def report(
                 "difference": diff,
                 "p_value": p,
                 "test": kind,
+                "effect_size": d,
             }
         )
         if s["n"] < 2:  # an interval of one run would have zero width: none is given
@@ -401,8 +435,19 @@ def report(
         test = f"{p} {kind}" if p else ("none (1 run)" if kind else "")
         md.append(
             f"| {g.label}{ref_mark} | {len(g.runs)} | {g.measured} "
-            f"| {s['mean']:.2f} | {interval} | {diff} | {test} |"
+            f"| {s['mean']:.2f} | {interval} | {diff} | {test} | {d} |"
         )
+    tested = [r for r in rows if r["p_value"] != ""]
+    if len(tested) > 1:  # several conditions against one reference: Holm's correction for the family
+        for r, adjusted in zip(tested, holm([float(str(r["p_value"])) for r in tested]), strict=True):
+            r["p_holm"] = f"{adjusted:.3f}"
+        md += [
+            "",
+            f"{len(tested)} conditions are compared with the reference: Holm's correction for the family "
+            "gives "
+            + ", ".join(f"{r['condition']} p = {r['p_holm']}" for r in tested)
+            + " (the verdicts below use these).",
+        ]
     if smallest[1] and smallest[0] > 0.05:
         md += [
             "",
@@ -417,6 +462,20 @@ def report(
     return rows, "\n".join(md)
 
 
+def per_seed_rows(groups: list[Group]) -> list[dict[str, object]]:
+    """One row per learner and condition: the value the report compares (``per_seed.csv``), for a
+    paper's own statistics."""
+    out: list[dict[str, object]] = []
+    for g in groups:
+        if g.y_key:
+            finals = g.finals()
+            out += [
+                {"condition": g.label, "seed": k, "metric": g.y_key, "value": finals[k]}
+                for k in sorted(finals)
+            ]
+    return out
+
+
 def verdicts(rows: list[dict[str, object]], reference: str, level: float = 0.05) -> list[str]:
     """One plain sentence per condition: its final value against the reference's, and whether the
     difference is significant at ``level`` (the report's paired or unpaired permutation test)."""
@@ -427,8 +486,9 @@ def verdicts(rows: list[dict[str, object]], reference: str, level: float = 0.05)
     for r in rows:
         if r is ref or r["p_value"] == "":
             continue
-        p = float(str(r["p_value"]))
+        p = float(str(r.get("p_holm") or r["p_value"]))
         diff = float(str(r["difference"]))
+        named = "p (Holm)" if r.get("p_holm") else "p"
         if p < level:
             word = "higher than" if diff > 0 else "lower than"
             verdict = f"significantly {word} the reference"
@@ -436,7 +496,7 @@ def verdicts(rows: list[dict[str, object]], reference: str, level: float = 0.05)
             verdict = "not significantly different from the reference"
         out.append(
             f"{r['condition']}: {float(str(r['mean'])):.2f} against {float(str(ref['mean'])):.2f} for "
-            f"{reference} ({diff:+.2f}, p = {p:.3f}, {r['runs']} seeds): {verdict} at {level:g}"
+            f"{reference} ({diff:+.2f}, {named} = {p:.3f}, {r['runs']} seeds): {verdict} at {level:g}"
         )
     return out
 
@@ -642,6 +702,10 @@ def aggregate(cfg: DictConfig) -> dict[str, object]:
         writer = csv.DictWriter(f, fieldnames=fields, restval="")
         writer.writeheader()
         writer.writerows(rows)
+    with (out / "per_seed.csv").open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=["condition", "seed", "metric", "value"])
+        writer.writeheader()
+        writer.writerows(per_seed_rows(groups))
     (out / "summary.md").write_text(md + "\n")
     plot(groups, out / "curves.png")
     plots = ["curves.png"]
@@ -657,6 +721,7 @@ def aggregate(cfg: DictConfig) -> dict[str, object]:
         "missing": len(broken),
         "conditions": len(groups),
         "summary_csv": str(out / "summary.csv"),
+        "per_seed_csv": str(out / "per_seed.csv"),
         "summary_md": str(out / "summary.md"),
         "plot": str(out / "curves.png"),
         "plots": [str(out / name) for name in plots],

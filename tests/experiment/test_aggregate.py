@@ -4,12 +4,23 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 from pathlib import Path
 
 import pytest
+from omegaconf import OmegaConf
 from script_runner import run_script
 
-from hfrl_torch.experiment.aggregate import find_runs, group_runs, permutation_p, report
+from hfrl_torch.experiment.aggregate import (
+    aggregate,
+    effect_size,
+    find_runs,
+    group_runs,
+    holm,
+    permutation_p,
+    report,
+    verdicts,
+)
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -184,3 +195,42 @@ def test_an_untaught_reference_and_a_taught_condition_share_one_csv(tmp_path):
     rows = list(csv.DictReader((tmp_path / "r" / "summary.csv").open()))
     assert [r["condition"] for r in rows] == ["fusion.name=none", "fusion.name=linear"]
     assert rows[0]["effort_feedback_events_last"] == "" and rows[1]["effort_feedback_events_last"] == "40.5"
+
+
+def test_holm_adjusts_the_family_and_effect_sizes_are_cohens_d():
+    assert holm([0.01, 0.04, 0.03]) == pytest.approx(
+        [0.03, 0.06, 0.06]
+    )  # 3 x 0.01, max(2 x 0.03, .), 1 x 0.04
+    assert holm([0.5]) == [0.5] and holm([0.4, 0.9]) == pytest.approx([0.8, 0.9])
+    # paired: mean difference 2 over its sd 1 (differences 1, 2, 3)
+    assert effect_size([11.0, 12.0, 13.0], [10.0, 10.0, 10.0], paired=True) == pytest.approx(2.0)
+    # unpaired: means 2 apart, pooled sd 1
+    assert effect_size([1.0, 2.0, 3.0], [3.0, 4.0, 5.0], paired=False) == pytest.approx(-2.0)
+    assert math.isnan(effect_size([1.0, 1.0], [0.0, 0.0], paired=True))  # no spread: no d
+
+
+def test_several_conditions_get_holm_verdicts_and_a_per_seed_csv(tmp_path):
+    for seed in range(6):
+        base = f"seed: {seed}\nagent:\n  name: cem\n"
+        _run(tmp_path, f"n{seed}", base + "fusion:\n  name: none\n", [1, 10 + seed])
+        _run(tmp_path, f"l{seed}", base + "fusion:\n  name: linear\n", [1, 20 + seed + seed % 2])
+        _run(tmp_path, f"a{seed}", base + "fusion:\n  name: annealed\n", [1, 10 + seed + (seed % 3) - 1])
+    rows, md = report(group_runs(find_runs([tmp_path])[0]))
+    linear = next(r for r in rows if r["condition"] == "fusion.name=linear")
+    assert linear["p_value"] == "0.031" and linear["p_holm"] == "0.062"  # 2 of 64 sign patterns, x 2
+    assert float(str(linear["effect_size"])) > 10  # every pair +10 or +11: a tiny spread
+    assert "Holm's correction for the family" in md
+    said = verdicts(rows, "fusion.name=none")
+    assert any("p (Holm) = 0.062" in v and "not significantly different" in v for v in said)
+    result = aggregate(OmegaConf.create({"runs": str(tmp_path), "out": str(tmp_path / "out")}))
+    with open(result["per_seed_csv"]) as f:
+        table = list(csv.DictReader(f))
+    assert len(table) == 18 and {r["condition"] for r in table} == {g["condition"] for g in rows}
+    assert [float(r["value"]) for r in table if r["condition"] == "fusion.name=none"] == [
+        10.0,
+        11.0,
+        12.0,
+        13.0,
+        14.0,
+        15.0,
+    ]
