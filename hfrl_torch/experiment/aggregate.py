@@ -390,6 +390,7 @@ def report(
         "| p (permutation) | effect size (d) |",
         "|---|---|---|---|---|---|---|---|",
     ]
+    raw_p: dict[int, float] = {}  # row -> its unrounded p, for Holm's correction
 
     for g in groups:
         if not g.y_key:
@@ -406,7 +407,8 @@ def report(
             diff = f"{s['mean'] - _ci(b)['mean']:+.2f}"
             kind = "paired" if paired else "unpaired"
             if min(len(a), len(b)) >= 2:  # one run per condition: no spread, so no test
-                p = f"{permutation_p(a, b, paired):.3f}"
+                raw_p[len(rows)] = permutation_p(a, b, paired)
+                p = f"{raw_p[len(rows)]:.3f}"
                 size = effect_size(a, b, paired)
                 d = "" if math.isnan(size) else f"{size:+.2f}"
                 if paired and len(a) <= 16:
@@ -437,9 +439,9 @@ def report(
             f"| {g.label}{ref_mark} | {len(g.runs)} | {g.measured} "
             f"| {s['mean']:.2f} | {interval} | {diff} | {test} | {d} |"
         )
-    tested = [r for r in rows if r["p_value"] != ""]
+    tested = [rows[i] for i in raw_p]
     if len(tested) > 1:  # several conditions against one reference: Holm's correction for the family
-        for r, adjusted in zip(tested, holm([float(str(r["p_value"])) for r in tested]), strict=True):
+        for r, adjusted in zip(tested, holm(list(raw_p.values())), strict=True):
             r["p_holm"] = f"{adjusted:.3f}"
         md += [
             "",

@@ -217,7 +217,9 @@ def test_several_conditions_get_holm_verdicts_and_a_per_seed_csv(tmp_path):
         _run(tmp_path, f"a{seed}", base + "fusion:\n  name: annealed\n", [1, 10 + seed + (seed % 3) - 1])
     rows, md = report(group_runs(find_runs([tmp_path])[0]))
     linear = next(r for r in rows if r["condition"] == "fusion.name=linear")
-    assert linear["p_value"] == "0.031" and linear["p_holm"] == "0.062"  # 2 of 64 sign patterns, x 2
+    assert (
+        linear["p_value"] == "0.031" and linear["p_holm"] == "0.062"
+    )  # 2 of 64 sign patterns (0.03125), x 2
     assert float(str(linear["effect_size"])) > 10  # every pair +10 or +11: a tiny spread
     assert "Holm's correction for the family" in md
     said = verdicts(rows, "fusion.name=none")
