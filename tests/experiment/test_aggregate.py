@@ -210,29 +210,22 @@ def test_holm_adjusts_the_family_and_effect_sizes_are_cohens_d():
 
 
 def test_several_conditions_get_holm_verdicts_and_a_per_seed_csv(tmp_path):
-    for seed in range(6):
+    for seed in range(5):
         base = f"seed: {seed}\nagent:\n  name: cem\n"
         _run(tmp_path, f"n{seed}", base + "fusion:\n  name: none\n", [1, 10 + seed])
         _run(tmp_path, f"l{seed}", base + "fusion:\n  name: linear\n", [1, 20 + seed + seed % 2])
         _run(tmp_path, f"a{seed}", base + "fusion:\n  name: annealed\n", [1, 10 + seed + (seed % 3) - 1])
     rows, md = report(group_runs(find_runs([tmp_path])[0]))
     linear = next(r for r in rows if r["condition"] == "fusion.name=linear")
-    assert (
-        linear["p_value"] == "0.031" and linear["p_holm"] == "0.062"
-    )  # 2 of 64 sign patterns (0.03125), x 2
+    # 2 of 32 sign patterns: p = 0.0625, shown 0.062; Holm doubles the unrounded value
+    assert linear["p_value"] == "0.062" and linear["p_holm"] == "0.125"
     assert float(str(linear["effect_size"])) > 10  # every pair +10 or +11: a tiny spread
     assert "Holm's correction for the family" in md
     said = verdicts(rows, "fusion.name=none")
-    assert any("p (Holm) = 0.062" in v and "not significantly different" in v for v in said)
+    assert any("p (Holm) = 0.125" in v and "not significantly different" in v for v in said)
     result = aggregate(OmegaConf.create({"runs": str(tmp_path), "out": str(tmp_path / "out")}))
     with open(result["per_seed_csv"]) as f:
         table = list(csv.DictReader(f))
-    assert len(table) == 18 and {r["condition"] for r in table} == {g["condition"] for g in rows}
-    assert [float(r["value"]) for r in table if r["condition"] == "fusion.name=none"] == [
-        10.0,
-        11.0,
-        12.0,
-        13.0,
-        14.0,
-        15.0,
-    ]
+    assert len(table) == 15 and {r["condition"] for r in table} == {g["condition"] for g in rows}
+    none = [float(r["value"]) for r in table if r["condition"] == "fusion.name=none"]
+    assert none == [10.0, 11.0, 12.0, 13.0, 14.0]
