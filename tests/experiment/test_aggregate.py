@@ -212,10 +212,16 @@ def test_holm_adjusts_the_family_and_effect_sizes_are_cohens_d():
 def test_several_conditions_get_holm_verdicts_and_a_per_seed_csv(tmp_path):
     for seed in range(5):
         base = f"seed: {seed}\nagent:\n  name: cem\n"
-        _run(tmp_path, f"n{seed}", base + "fusion:\n  name: none\n", [1, 10 + seed])
-        _run(tmp_path, f"l{seed}", base + "fusion:\n  name: linear\n", [1, 20 + seed + seed % 2])
-        _run(tmp_path, f"a{seed}", base + "fusion:\n  name: annealed\n", [1, 10 + seed + (seed % 3) - 1])
+        _run(tmp_path, f"a_none{seed}", base + "fusion:\n  name: none\n", [1, 10 + seed])
+        _run(tmp_path, f"b_linear{seed}", base + "fusion:\n  name: linear\n", [1, 20 + seed + seed % 2])
+        _run(
+            tmp_path,
+            f"c_annealed{seed}",
+            base + "fusion:\n  name: annealed\n",
+            [1, 10 + seed + (seed % 3) - 1],
+        )
     rows, md = report(group_runs(find_runs([tmp_path])[0]))
+    assert rows[0]["condition"] == "fusion.name=none"  # the reference, found first
     linear = next(r for r in rows if r["condition"] == "fusion.name=linear")
     # 2 of 32 sign patterns: p = 0.0625, shown 0.062; Holm doubles the unrounded value
     assert linear["p_value"] == "0.062" and linear["p_holm"] == "0.125"
