@@ -58,9 +58,9 @@ class OracleTrainer(Trainer):
         super().__init__(log)
         for name, v in (("frequency", frequency), ("consistency", consistency)):
             if not 0.0 <= v <= 1.0:
-                raise ValueError(f"OracleTrainer {name} must be within [0, 1], got {v!r}")
+                raise ValueError(f"{type(self).__name__} {name} must be within [0, 1], got {v!r}")
         if not reaction > 0:
-            raise ValueError(f"OracleTrainer reaction must be > 0 seconds, got {reaction!r}")
+            raise ValueError(f"{type(self).__name__} reaction must be > 0 seconds, got {reaction!r}")
         self.frequency = float(frequency)
         self.consistency = float(consistency)
         self.reaction = float(reaction)

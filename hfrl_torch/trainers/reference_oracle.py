@@ -17,8 +17,7 @@ from tensordict import TensorDictBase
 
 from hfrl_torch import keys
 from hfrl_torch.feedback.log import FeedbackLog
-from hfrl_torch.trainers.base import Events, Trainer, all_active
-from hfrl_torch.trainers.oracle import oracle_noise
+from hfrl_torch.trainers.oracle import OracleTrainer
 
 __all__ = ["Reference", "ReferenceOracle", "right_actions"]
 
@@ -48,8 +47,9 @@ def right_actions(reference: Reference, obs: torch.Tensor, actions: int) -> torc
     )
 
 
-class ReferenceOracle(Trainer):
-    """The oracle against a reference policy on ``keys.OBSERVATION`` (source ``"simulated:oracle"``).
+class ReferenceOracle(OracleTrainer):
+    """The oracle against a reference policy on ``keys.OBSERVATION`` (source ``"simulated:oracle"``): Tetris's
+    oracle, its draws and timing, with the judgement the reference's instead of Dellacherie's.
 
     :param reference: the policy judged against (see the module docstring).
     :param actions: A, the task's number of actions.
@@ -59,8 +59,6 @@ class ReferenceOracle(Trainer):
     :param reaction: seconds between the step and the event (> 0).
     :param log: feedback log every event is appended to.
     """
-
-    source = "simulated:oracle"
 
     def __init__(
         self,
@@ -72,35 +70,13 @@ class ReferenceOracle(Trainer):
         reaction: float = 0.3,
         log: FeedbackLog | None = None,
     ) -> None:
-        super().__init__(log)
-        for name, v in (("frequency", frequency), ("consistency", consistency)):
-            if not 0.0 <= v <= 1.0:
-                raise ValueError(f"ReferenceOracle {name} must be within [0, 1], got {v!r}")
-        if not reaction > 0:
-            raise ValueError(f"ReferenceOracle reaction must be > 0 seconds, got {reaction!r}")
+        super().__init__(frequency, consistency, seed, reaction, log=log)
         self.reference, self.actions = reference, int(actions)
-        self.frequency, self.consistency, self.reaction = (
-            float(frequency),
-            float(consistency),
-            float(reaction),
-        )
-        self.generator = torch.Generator().manual_seed(seed)
 
-    def judge(self, obs: TensorDictBase, action: torch.Tensor) -> torch.Tensor:
+    def judge(
+        self, obs: TensorDictBase, action: torch.Tensor, active: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """The noiseless judgement [B]: +1 where ``action`` is one the reference takes, else -1."""
         right = right_actions(self.reference, obs.get(keys.OBSERVATION), self.actions)
         taken = right.gather(-1, action.reshape(-1, 1).to(torch.int64).cpu()).squeeze(-1)
         return torch.where(taken, 1.0, -1.0).to(torch.float64)
-
-    def give(
-        self,
-        obs: TensorDictBase,
-        action: torch.Tensor,
-        time: float,
-        episode: torch.Tensor,
-        active: torch.Tensor | None = None,
-    ) -> Events:
-        act = all_active(obs, active)
-        speaks, flips = oracle_noise(act.shape[0], self.frequency, self.consistency, self.generator)
-        h = torch.where(flips, -1.0, 1.0) * self.judge(obs, action)
-        return self._one_per_board(h, act & speaks, time + self.reaction, obs, episode)
