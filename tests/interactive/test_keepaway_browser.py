@@ -16,9 +16,9 @@ from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.envs.keepaway import TASKS, KeepawayConfig
 from hfrl_torch.envs.keepaway.records import KeepawayRecords
 from hfrl_torch.envs.keepaway.simulator import KeepawaySimulator
+from hfrl_torch.experiment import factories
 from hfrl_torch.experiment.cli import compose_config
 from hfrl_torch.experiment.config import validate_train
-from hfrl_torch.experiment.learners import keepaway_sarsa
 from hfrl_torch.feedback.channel import FeedbackChannel
 from hfrl_torch.feedback.events import FeedbackEvent
 from hfrl_torch.feedback.log import FeedbackLog, load_feedback_log
@@ -188,7 +188,7 @@ def test_a_taught_loop_learns_from_presses_at_real_time(tmp_path, monkeypatch, r
     session.sleep = sleep
     session.connect()
     monkeypatch.setattr(  # not served
-        keepaway_sarsa,
+        factories,
         "make_live_teaching",
         lambda cfg, view, fusion, drain: LiveTeaching(
             TeachingServer(session, port=0), session, drain(session)
@@ -249,7 +249,7 @@ def test_finish_from_the_page_ends_the_keepers_run_with_a_checkpoint(tmp_path, m
         monkeypatch.setattr(page, "stop", lambda reason, saved: ended.append((reason, saved)) or 0)
         return page
 
-    monkeypatch.setattr(keepaway_sarsa, "make_live_teaching", live)
+    monkeypatch.setattr(factories, "make_live_teaching", live)
     over = ["domain=keepaway", "trainer=interactive", "trainer.wait_for_page_s=0", "agent.table_bits=12"]
     learner, final = run_learner(tmp_path, *over, "agent.hours=0.05", "agent.log_minutes=0.05")
     assert 4.0 <= clock[0] < 4.5  # the chunk ended at the request, not at the 3 simulated minutes

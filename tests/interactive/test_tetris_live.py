@@ -13,6 +13,7 @@ from hfrl_torch import keys
 from hfrl_torch.envs.tetris.env import TetrisEnv
 from hfrl_torch.envs.tetris.pieces import placement_table
 from hfrl_torch.envs.tetris.rules import TetrisRules
+from hfrl_torch.experiment import factories
 from hfrl_torch.experiment.learners import tetris_cem
 from hfrl_torch.feedback.credit import PreviousStep, credit_weights
 from hfrl_torch.feedback.events import FeedbackEvent
@@ -161,7 +162,7 @@ def test_a_taught_ce_round_files_each_press_under_the_placement_shown_before_it(
         made["teaching"] = LiveTeaching(TeachingServer(session, port=0), session, drain(session))
         return made["teaching"]
 
-    monkeypatch.setattr(tetris_cem, "make_live_teaching", live)
+    monkeypatch.setattr(factories, "make_live_teaching", live)
     over = ["trainer=interactive", "trainer.wait_for_page_s=0", "agent.iterations=1", "agent.population=6"]
     over += ["agent.games_per_candidate=1", "agent.eval_games=2", "agent.watch_pieces=30", "domain.height=20"]
     learner, final = run_learner(tmp_path, *over)
