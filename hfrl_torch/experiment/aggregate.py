@@ -35,6 +35,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.common.stats import summarize
+from hfrl_torch.fusion.weights import UNWEIGHTED
 
 # (x key, y key) of each learner's metrics.jsonl, in the order they are tried
 CURVES = (
@@ -299,7 +300,8 @@ def group_runs(runs: list[Run]) -> list[Group]:
         varying.append(k)
     groups: dict[str, list[Run]] = {}
     for run, flat in zip(runs, flats, strict=True):
-        label = ", ".join(f"{k}={flat.get(k)}" for k in varying) or "all runs"
+        unused = {"fusion.weight"} if flat.get("fusion.name") in UNWEIGHTED else set()  # none fuses nothing
+        label = ", ".join(f"{k}={flat.get(k)}" for k in varying if k not in unused) or "all runs"
         groups.setdefault(label, []).append(run)
     out = []
     for label, members in groups.items():

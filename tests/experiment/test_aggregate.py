@@ -235,3 +235,17 @@ def test_several_conditions_get_holm_verdicts_and_a_per_seed_csv(tmp_path):
     assert len(table) == 15 and {r["condition"] for r in table} == {g["condition"] for g in rows}
     none = [float(r["value"]) for r in table if r["condition"] == "fusion.name=none"]
     assert none == [10.0, 11.0, 12.0, 13.0, 14.0]
+
+
+def test_a_scheme_that_fuses_nothing_is_not_labelled_with_a_weight(tmp_path):
+    for seed in range(2):
+        base = f"seed: {seed}\nagent:\n  name: cem\n"
+        _run(tmp_path, f"a{seed}", base + "fusion:\n  name: none\n  weight: trust\n", [1, 10])
+        _run(tmp_path, f"b{seed}", base + "fusion:\n  name: linear\n  weight: trust\n", [1, 20])
+        _run(tmp_path, f"c{seed}", base + "fusion:\n  name: linear\n  weight: adaptive\n", [1, 30])
+    labels = [g.label for g in group_runs(find_runs([tmp_path])[0])]
+    assert labels == [
+        "fusion.name=none",
+        "fusion.name=linear, fusion.weight=trust",
+        "fusion.name=linear, fusion.weight=adaptive",
+    ]
