@@ -130,12 +130,11 @@ def make_gym_batch(task: GymTask, boards: int, seed: int | None = None) -> EnvBa
     (the module docstring says how), seeded when ``seed`` is given."""
     first = task.make_one()
     if isinstance(first, EnvBase):
-        first.close()
+        first.close()  # SerialEnv makes its own from the factory
         env = SerialEnv(boards, task.make_one)
-    else:
-        first.close()
+    else:  # the instance made to tell the kinds apart is the first of the vector (a task may be slow to make)
         vector = gym.vector.SyncVectorEnv(
-            [task.make_one] * boards,
+            [lambda: first] + [task.make_one] * (boards - 1),
             autoreset_mode=gym.vector.AutoresetMode.SAME_STEP,
         )
         env = GymWrapper(vector, categorical_action_encoding=True)

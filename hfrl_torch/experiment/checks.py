@@ -692,13 +692,18 @@ def check_gym_domain(cfg: DictConfig) -> None:
     gym_spaces(cfg)
 
 
+def plays_on_domain_task(policy: object) -> bool:
+    """Whether ``evaluate.py domain=gym policy=...`` plays on ``domain``'s task: ``random`` (or none) and a
+    reference ``module:callable``; a run directory or checkpoint brings its own task."""
+    return policy in (None, "random") or (":" in str(policy) and not Path(str(policy)).exists())
+
+
 def check_gym_evaluation(cfg: DictConfig) -> None:
     """``evaluate.py`` on ``domain=gym``: the episodes, the batch and the task (of ``policy=random`` or a
     reference callable; a checkpoint brings its own)."""
     require_int(cfg, "episodes", 1)
     require_int(cfg, "domain.batch", 1, 4096)
-    policy = OmegaConf.select(cfg, "policy")
-    if policy in (None, "random") or (":" in str(policy) and not Path(str(policy)).exists()):
+    if plays_on_domain_task(OmegaConf.select(cfg, "policy")):
         check_gym_domain(cfg)
 
 
@@ -710,9 +715,8 @@ def check_gym_dqn(cfg: DictConfig) -> None:
         return
     if trainer not in GYM_TRAINERS:
         raise ConfigError(f"trainer={trainer} is not available for domain=gym yet; allowed: none, oracle")
-    human = require_choice(cfg, "human.name", ("mlp",))
-    if human == "mlp":
-        check_mlp_human(cfg, placements=False)
+    require_choice(cfg, "human.name", ("mlp",))
+    check_mlp_human(cfg, placements=False)
     check_gym_reference(cfg)
     require_float(cfg, "trainer.frequency", 0.0, 1.0)
     require_float(cfg, "trainer.consistency", 0.0, 1.0)

@@ -20,7 +20,7 @@ from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.common.imports import load_callable
 from hfrl_torch.common.stats import summarize
 from hfrl_torch.envs.gym_task import GymTask
-from hfrl_torch.experiment.checks import gym_spaces
+from hfrl_torch.experiment.checks import gym_spaces, plays_on_domain_task
 from hfrl_torch.experiment.command_line import task_overrides
 from hfrl_torch.experiment.factories import make_gym_task, set_threads
 from hfrl_torch.experiment.learners.gym_dqn import gym_env, play_returns
@@ -64,7 +64,7 @@ def _policy(cfg: DictConfig) -> tuple[str, GymTask, TensorDictSequential, Fusion
     task), a reference ``module:callable`` or ``random`` (on ``domain``'s task)."""
     name = "random" if cfg.policy is None else str(cfg.policy)
     idle = Fusion("none", "none", ConstantWeight(0.0)).eval()
-    if name == "random" or (":" in name and not Path(name).exists()):
+    if plays_on_domain_task(name):
         task, spaces = make_gym_task(cfg), gym_spaces(cfg)
         if name == "random":
             policy = _random_policy(spaces.actions, int(cfg.seed) + 1)
