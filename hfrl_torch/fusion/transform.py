@@ -43,11 +43,11 @@ from collections.abc import Sequence
 from typing import Any
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import Tensor
-from torchrl.data import Composite, TensorSpec, Unbounded
+from torchrl.data import Categorical, Composite, OneHot, TensorSpec, Unbounded
 from torchrl.envs.transforms import Transform
 
 from hfrl_torch import keys
@@ -57,7 +57,7 @@ from hfrl_torch.fusion.schedules import WeightSchedule, as_schedule
 from hfrl_torch.fusion.schemes import REWARD_SCHEMES
 from hfrl_torch.models.linear import greedy_placement
 
-__all__ = ["HUMAN_REWARD_ESTIMATE", "FeedbackFusion", "FusionModule"]
+__all__ = ["ACTION_SPACES", "HUMAN_REWARD_ESTIMATE", "FeedbackFusion", "FusionModule", "action_space_of"]
 
 HUMAN_REWARD_ESTIMATE = keys.HUMAN_REWARD_ESTIMATE
 
@@ -400,22 +400,65 @@ class FeedbackFusion(Transform):
         )
 
 
+ACTION_SPACES = ("categorical", "one-hot")
+
+
+def action_space_of(action_space: str | None, spec: TensorSpec | None, action_key: NestedKey) -> str:
+    """``"categorical"`` or ``"one-hot"``: as named, or as ``spec`` (the action's, or a Composite holding it)
+    says, the way TorchRL's ``QValueModule`` reads its ``action_space``/``spec``; neither: categorical."""
+    named = None if action_space is None else action_space.replace("_", "-")
+    if named is not None and named not in ACTION_SPACES:
+        raise ValueError(
+            f"FusionModule action_space={action_space!r} is invalid; allowed: {', '.join(ACTION_SPACES)}"
+        )
+    from_spec = None
+    if spec is not None:
+        if isinstance(spec, Composite):
+            spec = spec.get(action_key, None)
+            if spec is None:
+                raise KeyError(f"FusionModule spec has no {action_key!r} entry; pass the action's spec")
+        if isinstance(spec, OneHot):
+            from_spec = "one-hot"
+        elif isinstance(spec, Categorical):
+            from_spec = "categorical"
+        else:
+            raise ValueError(
+                f"FusionModule spec {type(spec).__name__} is invalid; allowed: OneHot, Categorical"
+            )
+    if named is not None and from_spec is not None and named != from_spec:
+        raise ValueError(
+            f"FusionModule action_space={action_space!r} contradicts its spec, which is {from_spec}"
+        )
+    return named or from_spec or "categorical"
+
+
 class FusionModule(TensorDictModuleBase):
     """The decision face of a :class:`Fusion`, for a policy: R and H^ of every action in, fused values out.
 
-    Reads ``keys.ENV_VALUES``, ``keys.HUMAN_VALUES``, ``keys.ACTION_MASK`` (and, if present,
-    ``keys.AFTERSTATE_TERMINAL`` and ``keys.LEARNER``); writes ``keys.FUSED_VALUES`` and
-    ``keys.FUSION_WEIGHT``, and with ``select="greedy"`` also ``keys.ACTION``: the best choosable action (the
-    first on ties, a game-ending one only when all are). Without ``select`` the learner chooses from the
-    fused values itself (Sarsa's epsilon-greedy, PG's softmax).
+    Reads R (``env_values_key``), H^ (``human_values_key``), the mask (``action_mask_key``; absent: every
+    action valid) and, if present, the game-ending actions (``terminal_key``) and each row's learner
+    (``learner_key``); writes the fused values (``fused_values_key``) and each row's weight
+    (``fusion_weight_key``), and with ``select="greedy"`` also the action (``action_key``): the best
+    choosable action (the first on ties, a game-ending one only when all are), as an index
+    (``action_space="categorical"``) or a one-hot vector (``"one-hot"``), or as ``spec`` says (TorchRL's
+    ``QValueModule`` convention; e.g. ``spec=env.action_spec`` of a ``GymEnv``, one-hot by default). Without
+    ``select`` the learner chooses from the fused values itself (Sarsa's epsilon-greedy, PG's softmax). The
+    keys default to :mod:`hfrl_torch.keys`' names.
+
+    Values are ``[*B, A]`` with any batch ``B``, none included (an unbatched env: ``[A]``, a weight ``[]``);
+    rows of a multi-dimensional batch are flattened in order for the fusion's learners and match count.
 
     :param fusion: the fusion (its rule, weights and match count, shared with the loop that updates them).
     :param select: ``"greedy"`` or None.
     :param count: count each decision in the fusion's match count (the trust factor's m).
     :param weight_key: read each row's weight from this key instead of the fusion's schedule.
+    :param action_space: ``"categorical"`` or ``"one-hot"`` (None: from ``spec``, else categorical).
+    :param spec: the action's spec (or a Composite with an ``action_key`` entry): OneHot or Categorical.
 
     Example:
-        >>> policy = TensorDictSequential(env_values, human_values, FusionModule(fusion, select="greedy"))
+        >>> env = GymEnv("CartPole-v1")  # a one-hot action spec, no batch dimension
+        >>> fuse = FusionModule(fusion, "greedy", env_values_key="action_value", spec=env.action_spec)
+        >>> policy = TensorDictSequential(q_net, human_values, fuse)
     """
 
     def __init__(
@@ -424,26 +467,82 @@ class FusionModule(TensorDictModuleBase):
         select: str | None = None,
         count: bool = True,
         weight_key: NestedKey | None = None,
+        *,
+        env_values_key: NestedKey = keys.ENV_VALUES,
+        human_values_key: NestedKey = keys.HUMAN_VALUES,
+        action_mask_key: NestedKey = keys.ACTION_MASK,
+        terminal_key: NestedKey = keys.AFTERSTATE_TERMINAL,
+        learner_key: NestedKey = keys.LEARNER,
+        fused_values_key: NestedKey = keys.FUSED_VALUES,
+        fusion_weight_key: NestedKey = keys.FUSION_WEIGHT,
+        action_key: NestedKey = keys.ACTION,
+        action_space: str | None = None,
+        spec: TensorSpec | None = None,
     ) -> None:
         super().__init__()
         if select not in (None, "greedy"):
             raise ValueError(f"FusionModule select={select!r} is invalid; allowed: None, greedy")
         self.fusion, self.select, self.count, self.weight_key = fusion, select, bool(count), weight_key
+        self.action_space = action_space_of(action_space, spec, action_key)
+        self.action_dtype = torch.int64
+        if spec is not None:
+            action_spec = spec.get(action_key) if isinstance(spec, Composite) else spec
+            self.action_dtype = action_spec.dtype
+        # the fusion's own key of each entry it reads, and where this module finds it
+        self._reads = {
+            keys.ENV_VALUES: env_values_key,
+            keys.HUMAN_VALUES: human_values_key,
+            keys.ACTION_MASK: action_mask_key,
+            keys.AFTERSTATE_TERMINAL: terminal_key,
+            keys.LEARNER: learner_key,
+        }
+        self.env_values_key, self.human_values_key = env_values_key, human_values_key
+        self.fused_values_key, self.fusion_weight_key, self.action_key = (
+            fused_values_key,
+            fusion_weight_key,
+            action_key,
+        )
         self.in_keys = [
-            keys.ENV_VALUES,
-            keys.HUMAN_VALUES,
-            keys.ACTION_MASK,
+            env_values_key,
+            human_values_key,
+            action_mask_key,
             *([weight_key] if weight_key else []),
         ]
-        self.out_keys = [keys.FUSED_VALUES, keys.FUSION_WEIGHT, *([keys.ACTION] if select else [])]
+        self.out_keys = [fused_values_key, fusion_weight_key, *([action_key] if select else [])]
+        self._own_keys = all(k == v for k, v in self._reads.items()) and (
+            (fused_values_key, fusion_weight_key, action_key)
+            == (keys.FUSED_VALUES, keys.FUSION_WEIGHT, keys.ACTION)
+        )
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        weight = None if self.weight_key is None else tensordict.get(self.weight_key)
-        self.fusion.fuse(tensordict, count=self.count, weight=weight)
+        human = tensordict.get(self.human_values_key)
+        if self._own_keys and human.ndim == 2 and self.action_space == "categorical":
+            self._fuse_rows(tensordict, tensordict)  # the fusion's own layout: no view needed
+            return tensordict
+        batch = human.shape[:-1]
+        entries = {own: tensordict.get(key, None) for own, key in self._reads.items()}
+        present = {own: value for own, value in entries.items() if value is not None}
+        rows = TensorDict(present, batch_size=batch).reshape(-1)
+        self._fuse_rows(tensordict, rows)
+        tensordict.set(self.fused_values_key, rows.get(keys.FUSED_VALUES).reshape(*batch, -1))
+        tensordict.set(self.fusion_weight_key, rows.get(keys.FUSION_WEIGHT).reshape(batch))
         if self.select == "greedy":
-            values = tensordict.get(keys.FUSED_VALUES)
-            mask = tensordict.get(keys.ACTION_MASK, None)
-            mask = torch.ones(values.shape, dtype=torch.bool, device=values.device) if mask is None else mask
-            keep = choosable(mask.to(torch.bool), tensordict.get(keys.AFTERSTATE_TERMINAL, None))
-            tensordict.set(keys.ACTION, greedy_placement(values, keep))
+            tensordict.set(self.action_key, self._action(rows.get(keys.ACTION), human.shape))
         return tensordict
+
+    def _fuse_rows(self, tensordict: TensorDictBase, rows: TensorDictBase) -> None:
+        """Fuse ``rows`` ([M] rows of the fusion's own keys) and, with ``select``, write the index action."""
+        weight = None if self.weight_key is None else tensordict.get(self.weight_key).reshape(-1)
+        self.fusion.fuse(rows, count=self.count, weight=weight)
+        if self.select == "greedy":
+            values = rows.get(keys.FUSED_VALUES)
+            mask = rows.get(keys.ACTION_MASK, None)
+            mask = torch.ones(values.shape, dtype=torch.bool, device=values.device) if mask is None else mask
+            keep = choosable(mask.to(torch.bool), rows.get(keys.AFTERSTATE_TERMINAL, None))
+            rows.set(keys.ACTION, greedy_placement(values, keep))
+
+    def _action(self, index: Tensor, shape: torch.Size) -> Tensor:
+        """The chosen actions ``[M]`` as the env takes them: indices ``[*B]`` or one-hot ``[*B, A]``."""
+        if self.action_space == "one-hot":
+            return torch.nn.functional.one_hot(index, shape[-1]).reshape(shape).to(self.action_dtype)
+        return index.reshape(shape[:-1]).to(self.action_dtype)
