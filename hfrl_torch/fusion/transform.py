@@ -33,8 +33,18 @@ the transform's own :class:`~hfrl_torch.fusion.schedules.WeightSchedule` evaluat
 index, episodes being delimited by done flags: a board's index advances by one after the step
 whose done flag is set (that step is fused with its own episode's weight), once per episode even if the
 board is stepped again before its reset; a reset clears the flag for the boards it restarts and touches no
-other board. The transform never ends the schedule's episodes: a trust schedule is updated by the training
-loop, which knows the match rates (``Fusion.end_episode``).
+other board.
+
+Learned weights. A weight learned from whole episodes alone (``BanditWeight``: each episode's return of R)
+is learned here: the transform that owns its schedule ends the schedule's episode at each board's done flag
+(``Fusion.end_episode`` with the episode's return of the env reward and whether H was nonzero in it), so the
+weight learns with reward-level fusion alone, in any TorchRL loop. A weight that learns from what a reward
+transform never sees is refused at construction with a one-line error: the trust factor (eq. 4.4) needs the
+match rate of decisions, argmax R against argmax H^ over every action, which only
+:class:`FusionModule` counts; the paired and searched weights need the learner's own test games or search.
+Give those a :class:`Fusion` shared with the policy's ``FusionModule`` and with the loop that ends its
+episodes, or ``end_episodes=True`` to have this transform end them on done flags (performance: the
+episode's return of R).
 """
 
 from __future__ import annotations
@@ -60,6 +70,12 @@ from hfrl_torch.models.linear import greedy_placement
 __all__ = ["ACTION_SPACES", "HUMAN_REWARD_ESTIMATE", "FeedbackFusion", "FusionModule", "action_space_of"]
 
 HUMAN_REWARD_ESTIMATE = keys.HUMAN_REWARD_ESTIMATE
+# the weights learned from evidence a reward transform never sees (refused without a shared Fusion)
+UNSEEN_EVIDENCE = {
+    "trust": "the match rate of decisions (argmax R against argmax H^, counted by FusionModule)",
+    "paired": "test games the learner plays at several weights",
+    "search": "the learner's own search",
+}
 
 
 def _float_dtype(dtype: torch.dtype) -> torch.dtype:
@@ -87,6 +103,8 @@ class FeedbackFusion(Transform):
     :param agents: n, the agents per board (with ``agent_key``).
     :param deciding_key: the entry saying which boards' agent decides (with ``agent_key``; None: all).
     :param agent_rewards_key: every agent's reward at an episode's end, ``[*B, n]`` (with ``agent_key``).
+    :param end_episodes: end the schedule's episodes on done flags (the module docstring); None: when the
+        transform owns a weight learned from episodes (``BanditWeight``), not with a shared ``Fusion``.
 
     Offline (``transform(rollout)``), the transform re-fuses a stored trajectory ``[*B, T]`` (time last, as
     ``env.rollout`` and collectors lay it out): R from ``("next", env_reward)`` if present, else
@@ -116,6 +134,7 @@ class FeedbackFusion(Transform):
         agents: int = 1,
         deciding_key: NestedKey | None = None,
         agent_rewards_key: NestedKey | None = None,
+        end_episodes: bool | None = None,
     ) -> None:
         if isinstance(scheme, Fusion):
             fusion = scheme
@@ -131,6 +150,15 @@ class FeedbackFusion(Transform):
         else:
             fusion = Fusion("none", scheme, as_schedule(weight))
         self._shared = isinstance(scheme, Fusion)  # its weights are the loop's; else counted here
+        kind = fusion.schedule.kind
+        if not self._shared and kind in UNSEEN_EVIDENCE:
+            raise ValueError(
+                f"FeedbackFusion weight={fusion.schedule!r} learns from {UNSEEN_EVIDENCE[kind]}, which a "
+                "reward transform never sees; pass a Fusion shared with the FusionModule and loop that give "
+                "it, or a number, AnnealedWeight or BanditWeight"
+            )
+        learned = kind not in ("constant", "annealed")
+        self.end_episodes = (not self._shared and learned) if end_episodes is None else bool(end_episodes)
         if estimate_key is None and feedback_key is None:
             raise ValueError("FeedbackFusion needs estimate_key, feedback_key or both: where to read H from")
         if agent_key is not None and (agents < 1 or estimate_key is None):
@@ -152,6 +180,8 @@ class FeedbackFusion(Transform):
         self.reset_key = reset_key
         self._episodes: Tensor | None = None
         self._finished: Tensor | None = None
+        self._returns: Tensor | None = None  # each board's return of R in its episode (with end_episodes)
+        self._taught: Tensor | None = None  # each board's episode had a nonzero H
 
     @property
     def schedule(self) -> WeightSchedule:
@@ -244,9 +274,39 @@ class FeedbackFusion(Transform):
         next_tensordict.set(self.env_reward_key, reward)
         if self.estimate_key is not None:
             next_tensordict.set(self.estimate_key, torch.zeros_like(reward, dtype=_float_dtype(reward.dtype)))
-        self._episodes = episodes + (done & ~self._finished).to(torch.int64)
+        ended = done & ~self._finished
+        if self.end_episodes:
+            self._end_episodes(reward, human, ended)
+        self._episodes = episodes + ended.to(torch.int64)
         self._finished = self._finished | done
         return next_tensordict
+
+    def _end_episodes(self, reward: Tensor, human: Tensor | None, ended: Tensor) -> None:
+        """Add this step to each board's return and end the schedule's episode of every board that ended."""
+        boards = ended.numel()
+        if self._returns is None or self._returns.numel() != boards:
+            self._returns = torch.zeros(boards, dtype=torch.float64)
+            self._taught = torch.zeros(boards, dtype=torch.bool)
+        self._returns += reward.detach().reshape(boards, -1).sum(-1).cpu().to(torch.float64)
+        if human is not None:
+            self._taught |= (human.detach().reshape(boards, -1) != 0).any(-1).cpu()
+        flags = ended.reshape(boards).cpu()
+        if not bool(flags.any()):
+            return
+        learners = self.fusion.learners
+        if learners == boards:
+            self.fusion.end_episode(flags, self._returns.clone(), self._taught if human is not None else None)
+        elif learners == 1:  # every board's episode is one episode of the one learner, in board order
+            for b in flags.nonzero().flatten().tolist():
+                taught = self._taught[b : b + 1] if human is not None else None
+                self.fusion.end_episode(torch.ones(1, dtype=torch.bool), self._returns[b : b + 1], taught)
+        else:
+            raise ValueError(
+                f"FeedbackFusion ends episodes of {learners} learners on {boards} boards; allowed: one "
+                "learner, or one per board"
+            )
+        self._returns = torch.where(flags, 0.0, self._returns)
+        self._taught = self._taught & ~flags
 
     def _fuse_agents(
         self, root: TensorDictBase, nxt: TensorDictBase, reward: Tensor, episodes: Tensor, done: Tensor
@@ -289,6 +349,10 @@ class FeedbackFusion(Transform):
         reset = reset_flags(tensordict, self.reset_key, batch)
         self._counters(batch, tensordict_reset.device)
         self._finished = self._finished & ~reset.to(self._finished.device)
+        if self._returns is not None and self._returns.numel() == reset.numel():
+            restarted = reset.reshape(-1).cpu()
+            self._returns = torch.where(restarted, 0.0, self._returns)
+            self._taught = self._taught & ~restarted
         if self.agent_key is not None:
             pending, last = self._agent_state(batch, tensordict_reset.device)
             r = reset.to(pending.device)
@@ -379,6 +443,8 @@ class FeedbackFusion(Transform):
             "finished": None if self._finished is None else self._finished.tolist(),
             "pending": None if self._pending is None else self._pending.tolist(),
             "last_agent": None if self._last_agent is None else self._last_agent.tolist(),
+            "returns": None if self._returns is None else self._returns.tolist(),
+            "taught": None if self._taught is None else self._taught.tolist(),
             "schedule": self.schedule.state_dict(),
         }
 
@@ -392,6 +458,9 @@ class FeedbackFusion(Transform):
         pending, last = state.get("pending"), state.get("last_agent")
         self._pending = None if pending is None else torch.tensor(pending, dtype=torch.float64)
         self._last_agent = None if last is None else torch.tensor(last, dtype=torch.int64)
+        returns, taught = state.get("returns"), state.get("taught")
+        self._returns = None if returns is None else torch.tensor(returns, dtype=torch.float64)
+        self._taught = None if taught is None else torch.tensor(taught, dtype=torch.bool)
 
     def __repr__(self) -> str:
         return (
