@@ -200,6 +200,12 @@ class FeedbackFusion(Transform):
                     f"FeedbackFusion counts episodes of batch {tuple(self._episodes.shape)}, got a "
                     f"tensordict of batch {tuple(batch)}"
                 )
+            boards, learners = batch.numel(), self.fusion.learners
+            if self.end_episodes and learners not in (1, boards):
+                raise ValueError(
+                    f"FeedbackFusion ends episodes of {learners} learners on {boards} boards; allowed: one "
+                    "learner, or one per board"
+                )
             self._episodes = torch.zeros(batch, dtype=torch.int64, device=device)
             self._finished = torch.zeros(batch, dtype=torch.bool, device=device)
         return self._episodes
@@ -296,15 +302,10 @@ class FeedbackFusion(Transform):
         learners = self.fusion.learners
         if learners == boards:
             self.fusion.end_episode(flags, self._returns.clone(), self._taught if human is not None else None)
-        elif learners == 1:  # every board's episode is one episode of the one learner, in board order
+        else:  # one learner (checked with the counters): each board's episode is one of its, in board order
             for b in flags.nonzero().flatten().tolist():
                 taught = self._taught[b : b + 1] if human is not None else None
                 self.fusion.end_episode(torch.ones(1, dtype=torch.bool), self._returns[b : b + 1], taught)
-        else:
-            raise ValueError(
-                f"FeedbackFusion ends episodes of {learners} learners on {boards} boards; allowed: one "
-                "learner, or one per board"
-            )
         self._returns = torch.where(flags, 0.0, self._returns)
         self._taught = self._taught & ~flags
 

@@ -132,3 +132,13 @@ def test_the_trust_factor_moves_with_reward_level_fusion_in_a_plain_rollout():
     # trust up from 0.5 after each episode
     assert int(fusion.schedule.episodes[0]) >= 1
     assert float(fusion.weight()[0]) > 0.5
+
+
+def test_learners_that_fit_neither_one_nor_one_per_board_are_refused_at_reset():
+    fusion = FeedbackFusion("reward_shaping", BanditWeight(3, arms=(0.0, 1.0)))
+    env = TransformedEnv(SerialEnv(2, lambda: GymEnv("CartPole-v1")), fusion)
+    with pytest.raises(
+        ValueError, match="ends episodes of 3 learners on 2 boards; allowed: one learner, or one"
+    ):
+        env.reset()
+    env.close()
