@@ -49,7 +49,7 @@ def test_named_keys_are_read_and_written_where_asked():
     assert td["agent", "act"].tolist() == [1, 0]  # action 0 of row 0 is masked; the first of a tie
     assert td["w"].tolist() == [0.5, 0.5]
     for own in (keys.FUSED_VALUES, keys.FUSION_WEIGHT, keys.ACTION):
-        assert own not in td.keys()
+        assert own not in td
 
 
 def test_one_hot_actions_by_name_and_by_spec():
@@ -70,7 +70,10 @@ def test_one_hot_actions_by_name_and_by_spec():
     [
         ({"action_space": "binary"}, "action_space='binary' is invalid; allowed: categorical, one-hot"),
         ({"action_space": "categorical", "spec": OneHot(3)}, "contradicts its spec, which is one-hot"),
-        ({"spec": Bounded(-1.0, 1.0, shape=(1,))}, "spec BoundedContinuous is invalid; allowed: OneHot, Categorical"),
+        (
+            {"spec": Bounded(-1.0, 1.0, shape=(1,))},
+            "spec BoundedContinuous is invalid; allowed: OneHot, Categorical",
+        ),
     ],
 )
 def test_bad_action_spaces_are_one_line_errors(kwargs, message):
@@ -118,7 +121,9 @@ class _Linear(torch.nn.Module):
 def _policy(env, fusion: Fusion, **kwargs) -> TensorDictSequential:
     q = TensorDictModule(_Linear(1.0), in_keys=["observation"], out_keys=["action_value"])
     h = TensorDictModule(_Linear(-1.0), in_keys=["observation"], out_keys=["h_values"])
-    fuse = FusionModule(fusion, "greedy", env_values_key="action_value", human_values_key="h_values", **kwargs)
+    fuse = FusionModule(
+        fusion, "greedy", env_values_key="action_value", human_values_key="h_values", **kwargs
+    )
     return TensorDictSequential(q, h, fuse)
 
 
