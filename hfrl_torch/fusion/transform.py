@@ -33,8 +33,18 @@ the transform's own :class:`~hfrl_torch.fusion.schedules.WeightSchedule` evaluat
 index, episodes being delimited by done flags: a board's index advances by one after the step
 whose done flag is set (that step is fused with its own episode's weight), once per episode even if the
 board is stepped again before its reset; a reset clears the flag for the boards it restarts and touches no
-other board. The transform never ends the schedule's episodes: a trust schedule is updated by the training
-loop, which knows the match rates (``Fusion.end_episode``).
+other board.
+
+Learned weights. A weight learned from whole episodes alone (``BanditWeight``: each episode's return of R)
+is learned here: the transform that owns its schedule ends the schedule's episode at each board's done flag
+(``Fusion.end_episode`` with the episode's return of the env reward and whether H was nonzero in it), so the
+weight learns with reward-level fusion alone, in any TorchRL loop. A weight that learns from what a reward
+transform never sees is refused at construction with a one-line error: the trust factor (eq. 4.4) needs the
+match rate of decisions, argmax R against argmax H^ over every action, which only
+:class:`FusionModule` counts; the paired and searched weights need the learner's own test games or search.
+Give those a :class:`Fusion` shared with the policy's ``FusionModule`` and with the loop that ends its
+episodes, or ``end_episodes=True`` to have this transform end them on done flags (performance: the
+episode's return of R).
 """
 
 from __future__ import annotations
@@ -43,11 +53,11 @@ from collections.abc import Sequence
 from typing import Any
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import Tensor
-from torchrl.data import Composite, TensorSpec, Unbounded
+from torchrl.data import Categorical, Composite, OneHot, TensorSpec, Unbounded
 from torchrl.envs.transforms import Transform
 
 from hfrl_torch import keys
@@ -57,9 +67,15 @@ from hfrl_torch.fusion.schedules import WeightSchedule, as_schedule
 from hfrl_torch.fusion.schemes import REWARD_SCHEMES
 from hfrl_torch.models.linear import greedy_placement
 
-__all__ = ["HUMAN_REWARD_ESTIMATE", "FeedbackFusion", "FusionModule"]
+__all__ = ["ACTION_SPACES", "HUMAN_REWARD_ESTIMATE", "FeedbackFusion", "FusionModule", "action_space_of"]
 
 HUMAN_REWARD_ESTIMATE = keys.HUMAN_REWARD_ESTIMATE
+# the weights learned from evidence a reward transform never sees (refused without a shared Fusion)
+UNSEEN_EVIDENCE = {
+    "trust": "the match rate of decisions (argmax R against argmax H^, counted by FusionModule)",
+    "paired": "test games the learner plays at several weights",
+    "search": "the learner's own search",
+}
 
 
 def _float_dtype(dtype: torch.dtype) -> torch.dtype:
@@ -87,6 +103,8 @@ class FeedbackFusion(Transform):
     :param agents: n, the agents per board (with ``agent_key``).
     :param deciding_key: the entry saying which boards' agent decides (with ``agent_key``; None: all).
     :param agent_rewards_key: every agent's reward at an episode's end, ``[*B, n]`` (with ``agent_key``).
+    :param end_episodes: end the schedule's episodes on done flags (the module docstring); None: when the
+        transform owns a weight learned from episodes (``BanditWeight``), not with a shared ``Fusion``.
 
     Offline (``transform(rollout)``), the transform re-fuses a stored trajectory ``[*B, T]`` (time last, as
     ``env.rollout`` and collectors lay it out): R from ``("next", env_reward)`` if present, else
@@ -116,6 +134,7 @@ class FeedbackFusion(Transform):
         agents: int = 1,
         deciding_key: NestedKey | None = None,
         agent_rewards_key: NestedKey | None = None,
+        end_episodes: bool | None = None,
     ) -> None:
         if isinstance(scheme, Fusion):
             fusion = scheme
@@ -131,6 +150,15 @@ class FeedbackFusion(Transform):
         else:
             fusion = Fusion("none", scheme, as_schedule(weight))
         self._shared = isinstance(scheme, Fusion)  # its weights are the loop's; else counted here
+        kind = fusion.schedule.kind
+        if not self._shared and kind in UNSEEN_EVIDENCE:
+            raise ValueError(
+                f"FeedbackFusion weight={fusion.schedule!r} learns from {UNSEEN_EVIDENCE[kind]}, which a "
+                "reward transform never sees; pass a Fusion shared with the FusionModule and loop that give "
+                "it, or a number, AnnealedWeight or BanditWeight"
+            )
+        learned = kind not in ("constant", "annealed")
+        self.end_episodes = (not self._shared and learned) if end_episodes is None else bool(end_episodes)
         if estimate_key is None and feedback_key is None:
             raise ValueError("FeedbackFusion needs estimate_key, feedback_key or both: where to read H from")
         if agent_key is not None and (agents < 1 or estimate_key is None):
@@ -152,6 +180,8 @@ class FeedbackFusion(Transform):
         self.reset_key = reset_key
         self._episodes: Tensor | None = None
         self._finished: Tensor | None = None
+        self._returns: Tensor | None = None  # each board's return of R in its episode (with end_episodes)
+        self._taught: Tensor | None = None  # each board's episode had a nonzero H
 
     @property
     def schedule(self) -> WeightSchedule:
@@ -169,6 +199,12 @@ class FeedbackFusion(Transform):
                 raise ValueError(
                     f"FeedbackFusion counts episodes of batch {tuple(self._episodes.shape)}, got a "
                     f"tensordict of batch {tuple(batch)}"
+                )
+            boards, learners = batch.numel(), self.fusion.learners
+            if self.end_episodes and learners not in (1, boards):
+                raise ValueError(
+                    f"FeedbackFusion ends episodes of {learners} learners on {boards} boards; allowed: one "
+                    "learner, or one per board"
                 )
             self._episodes = torch.zeros(batch, dtype=torch.int64, device=device)
             self._finished = torch.zeros(batch, dtype=torch.bool, device=device)
@@ -244,9 +280,34 @@ class FeedbackFusion(Transform):
         next_tensordict.set(self.env_reward_key, reward)
         if self.estimate_key is not None:
             next_tensordict.set(self.estimate_key, torch.zeros_like(reward, dtype=_float_dtype(reward.dtype)))
-        self._episodes = episodes + (done & ~self._finished).to(torch.int64)
+        ended = done & ~self._finished
+        if self.end_episodes:
+            self._end_episodes(reward, human, ended)
+        self._episodes = episodes + ended.to(torch.int64)
         self._finished = self._finished | done
         return next_tensordict
+
+    def _end_episodes(self, reward: Tensor, human: Tensor | None, ended: Tensor) -> None:
+        """Add this step to each board's return and end the schedule's episode of every board that ended."""
+        boards = ended.numel()
+        if self._returns is None or self._returns.numel() != boards:
+            self._returns = torch.zeros(boards, dtype=torch.float64)
+            self._taught = torch.zeros(boards, dtype=torch.bool)
+        self._returns += reward.detach().reshape(boards, -1).sum(-1).cpu().to(torch.float64)
+        if human is not None:
+            self._taught |= (human.detach().reshape(boards, -1) != 0).any(-1).cpu()
+        flags = ended.reshape(boards).cpu()
+        if not bool(flags.any()):
+            return
+        learners = self.fusion.learners
+        if learners == boards:
+            self.fusion.end_episode(flags, self._returns.clone(), self._taught if human is not None else None)
+        else:  # one learner (checked with the counters): each board's episode is one of its, in board order
+            for b in flags.nonzero().flatten().tolist():
+                taught = self._taught[b : b + 1] if human is not None else None
+                self.fusion.end_episode(torch.ones(1, dtype=torch.bool), self._returns[b : b + 1], taught)
+        self._returns = torch.where(flags, 0.0, self._returns)
+        self._taught = self._taught & ~flags
 
     def _fuse_agents(
         self, root: TensorDictBase, nxt: TensorDictBase, reward: Tensor, episodes: Tensor, done: Tensor
@@ -289,6 +350,10 @@ class FeedbackFusion(Transform):
         reset = reset_flags(tensordict, self.reset_key, batch)
         self._counters(batch, tensordict_reset.device)
         self._finished = self._finished & ~reset.to(self._finished.device)
+        if self._returns is not None and self._returns.numel() == reset.numel():
+            restarted = reset.reshape(-1).cpu()
+            self._returns = torch.where(restarted, 0.0, self._returns)
+            self._taught = self._taught & ~restarted
         if self.agent_key is not None:
             pending, last = self._agent_state(batch, tensordict_reset.device)
             r = reset.to(pending.device)
@@ -379,6 +444,8 @@ class FeedbackFusion(Transform):
             "finished": None if self._finished is None else self._finished.tolist(),
             "pending": None if self._pending is None else self._pending.tolist(),
             "last_agent": None if self._last_agent is None else self._last_agent.tolist(),
+            "returns": None if self._returns is None else self._returns.tolist(),
+            "taught": None if self._taught is None else self._taught.tolist(),
             "schedule": self.schedule.state_dict(),
         }
 
@@ -392,6 +459,9 @@ class FeedbackFusion(Transform):
         pending, last = state.get("pending"), state.get("last_agent")
         self._pending = None if pending is None else torch.tensor(pending, dtype=torch.float64)
         self._last_agent = None if last is None else torch.tensor(last, dtype=torch.int64)
+        returns, taught = state.get("returns"), state.get("taught")
+        self._returns = None if returns is None else torch.tensor(returns, dtype=torch.float64)
+        self._taught = None if taught is None else torch.tensor(taught, dtype=torch.bool)
 
     def __repr__(self) -> str:
         return (
@@ -400,22 +470,65 @@ class FeedbackFusion(Transform):
         )
 
 
+ACTION_SPACES = ("categorical", "one-hot")
+
+
+def action_space_of(action_space: str | None, spec: TensorSpec | None, action_key: NestedKey) -> str:
+    """``"categorical"`` or ``"one-hot"``: as named, or as ``spec`` (the action's, or a Composite holding it)
+    says, the way TorchRL's ``QValueModule`` reads its ``action_space``/``spec``; neither: categorical."""
+    named = None if action_space is None else action_space.replace("_", "-")
+    if named is not None and named not in ACTION_SPACES:
+        raise ValueError(
+            f"FusionModule action_space={action_space!r} is invalid; allowed: {', '.join(ACTION_SPACES)}"
+        )
+    from_spec = None
+    if spec is not None:
+        if isinstance(spec, Composite):
+            spec = spec.get(action_key, None)
+            if spec is None:
+                raise KeyError(f"FusionModule spec has no {action_key!r} entry; pass the action's spec")
+        if isinstance(spec, OneHot):
+            from_spec = "one-hot"
+        elif isinstance(spec, Categorical):
+            from_spec = "categorical"
+        else:
+            raise ValueError(
+                f"FusionModule spec {type(spec).__name__} is invalid; allowed: OneHot, Categorical"
+            )
+    if named is not None and from_spec is not None and named != from_spec:
+        raise ValueError(
+            f"FusionModule action_space={action_space!r} contradicts its spec, which is {from_spec}"
+        )
+    return named or from_spec or "categorical"
+
+
 class FusionModule(TensorDictModuleBase):
     """The decision face of a :class:`Fusion`, for a policy: R and H^ of every action in, fused values out.
 
-    Reads ``keys.ENV_VALUES``, ``keys.HUMAN_VALUES``, ``keys.ACTION_MASK`` (and, if present,
-    ``keys.AFTERSTATE_TERMINAL`` and ``keys.LEARNER``); writes ``keys.FUSED_VALUES`` and
-    ``keys.FUSION_WEIGHT``, and with ``select="greedy"`` also ``keys.ACTION``: the best choosable action (the
-    first on ties, a game-ending one only when all are). Without ``select`` the learner chooses from the
-    fused values itself (Sarsa's epsilon-greedy, PG's softmax).
+    Reads R (``env_values_key``), H^ (``human_values_key``), the mask (``action_mask_key``; absent: every
+    action valid) and, if present, the game-ending actions (``terminal_key``) and each row's learner
+    (``learner_key``); writes the fused values (``fused_values_key``) and each row's weight
+    (``fusion_weight_key``), and with ``select="greedy"`` also the action (``action_key``): the best
+    choosable action (the first on ties, a game-ending one only when all are), as an index
+    (``action_space="categorical"``) or a one-hot vector (``"one-hot"``), or as ``spec`` says (TorchRL's
+    ``QValueModule`` convention; e.g. ``spec=env.action_spec`` of a ``GymEnv``, one-hot by default). Without
+    ``select`` the learner chooses from the fused values itself (Sarsa's epsilon-greedy, PG's softmax). The
+    keys default to :mod:`hfrl_torch.keys`' names.
+
+    Values are ``[*B, A]`` with any batch ``B``, none included (an unbatched env: ``[A]``, a weight ``[]``);
+    rows of a multi-dimensional batch are flattened in order for the fusion's learners and match count.
 
     :param fusion: the fusion (its rule, weights and match count, shared with the loop that updates them).
     :param select: ``"greedy"`` or None.
     :param count: count each decision in the fusion's match count (the trust factor's m).
     :param weight_key: read each row's weight from this key instead of the fusion's schedule.
+    :param action_space: ``"categorical"`` or ``"one-hot"`` (None: from ``spec``, else categorical).
+    :param spec: the action's spec (or a Composite with an ``action_key`` entry): OneHot or Categorical.
 
     Example:
-        >>> policy = TensorDictSequential(env_values, human_values, FusionModule(fusion, select="greedy"))
+        >>> env = GymEnv("CartPole-v1")  # a one-hot action spec, no batch dimension
+        >>> fuse = FusionModule(fusion, "greedy", env_values_key="action_value", spec=env.action_spec)
+        >>> policy = TensorDictSequential(q_net, human_values, fuse)
     """
 
     def __init__(
@@ -424,26 +537,82 @@ class FusionModule(TensorDictModuleBase):
         select: str | None = None,
         count: bool = True,
         weight_key: NestedKey | None = None,
+        *,
+        env_values_key: NestedKey = keys.ENV_VALUES,
+        human_values_key: NestedKey = keys.HUMAN_VALUES,
+        action_mask_key: NestedKey = keys.ACTION_MASK,
+        terminal_key: NestedKey = keys.AFTERSTATE_TERMINAL,
+        learner_key: NestedKey = keys.LEARNER,
+        fused_values_key: NestedKey = keys.FUSED_VALUES,
+        fusion_weight_key: NestedKey = keys.FUSION_WEIGHT,
+        action_key: NestedKey = keys.ACTION,
+        action_space: str | None = None,
+        spec: TensorSpec | None = None,
     ) -> None:
         super().__init__()
         if select not in (None, "greedy"):
             raise ValueError(f"FusionModule select={select!r} is invalid; allowed: None, greedy")
         self.fusion, self.select, self.count, self.weight_key = fusion, select, bool(count), weight_key
+        self.action_space = action_space_of(action_space, spec, action_key)
+        self.action_dtype = torch.int64
+        if spec is not None:
+            action_spec = spec.get(action_key) if isinstance(spec, Composite) else spec
+            self.action_dtype = action_spec.dtype
+        # the fusion's own key of each entry it reads, and where this module finds it
+        self._reads = {
+            keys.ENV_VALUES: env_values_key,
+            keys.HUMAN_VALUES: human_values_key,
+            keys.ACTION_MASK: action_mask_key,
+            keys.AFTERSTATE_TERMINAL: terminal_key,
+            keys.LEARNER: learner_key,
+        }
+        self.env_values_key, self.human_values_key = env_values_key, human_values_key
+        self.fused_values_key, self.fusion_weight_key, self.action_key = (
+            fused_values_key,
+            fusion_weight_key,
+            action_key,
+        )
         self.in_keys = [
-            keys.ENV_VALUES,
-            keys.HUMAN_VALUES,
-            keys.ACTION_MASK,
+            env_values_key,
+            human_values_key,
+            action_mask_key,
             *([weight_key] if weight_key else []),
         ]
-        self.out_keys = [keys.FUSED_VALUES, keys.FUSION_WEIGHT, *([keys.ACTION] if select else [])]
+        self.out_keys = [fused_values_key, fusion_weight_key, *([action_key] if select else [])]
+        self._own_keys = all(k == v for k, v in self._reads.items()) and (
+            (fused_values_key, fusion_weight_key, action_key)
+            == (keys.FUSED_VALUES, keys.FUSION_WEIGHT, keys.ACTION)
+        )
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        weight = None if self.weight_key is None else tensordict.get(self.weight_key)
-        self.fusion.fuse(tensordict, count=self.count, weight=weight)
+        human = tensordict.get(self.human_values_key)
+        if self._own_keys and human.ndim == 2 and self.action_space == "categorical":
+            self._fuse_rows(tensordict, tensordict)  # the fusion's own layout: no view needed
+            return tensordict
+        batch = human.shape[:-1]
+        entries = {own: tensordict.get(key, None) for own, key in self._reads.items()}
+        present = {own: value for own, value in entries.items() if value is not None}
+        rows = TensorDict(present, batch_size=batch).reshape(-1)
+        self._fuse_rows(tensordict, rows)
+        tensordict.set(self.fused_values_key, rows.get(keys.FUSED_VALUES).reshape(*batch, -1))
+        tensordict.set(self.fusion_weight_key, rows.get(keys.FUSION_WEIGHT).reshape(batch))
         if self.select == "greedy":
-            values = tensordict.get(keys.FUSED_VALUES)
-            mask = tensordict.get(keys.ACTION_MASK, None)
-            mask = torch.ones(values.shape, dtype=torch.bool, device=values.device) if mask is None else mask
-            keep = choosable(mask.to(torch.bool), tensordict.get(keys.AFTERSTATE_TERMINAL, None))
-            tensordict.set(keys.ACTION, greedy_placement(values, keep))
+            tensordict.set(self.action_key, self._action(rows.get(keys.ACTION), human.shape))
         return tensordict
+
+    def _fuse_rows(self, tensordict: TensorDictBase, rows: TensorDictBase) -> None:
+        """Fuse ``rows`` ([M] rows of the fusion's own keys) and, with ``select``, write the index action."""
+        weight = None if self.weight_key is None else tensordict.get(self.weight_key).reshape(-1)
+        self.fusion.fuse(rows, count=self.count, weight=weight)
+        if self.select == "greedy":
+            values = rows.get(keys.FUSED_VALUES)
+            mask = rows.get(keys.ACTION_MASK, None)
+            mask = torch.ones(values.shape, dtype=torch.bool, device=values.device) if mask is None else mask
+            keep = choosable(mask.to(torch.bool), rows.get(keys.AFTERSTATE_TERMINAL, None))
+            rows.set(keys.ACTION, greedy_placement(values, keep))
+
+    def _action(self, index: Tensor, shape: torch.Size) -> Tensor:
+        """The chosen actions ``[M]`` as the env takes them: indices ``[*B]`` or one-hot ``[*B, A]``."""
+        if self.action_space == "one-hot":
+            return torch.nn.functional.one_hot(index, shape[-1]).reshape(shape).to(self.action_dtype)
+        return index.reshape(shape[:-1]).to(self.action_dtype)

@@ -19,7 +19,7 @@ from torchrl.envs.utils import check_env_specs
 
 from hfrl_torch import keys
 from hfrl_torch.envs.tetris import TetrisEnv, TetrisRules
-from hfrl_torch.fusion import HUMAN_REWARD_ESTIMATE, AnnealedWeight, FeedbackFusion, TrustWeight
+from hfrl_torch.fusion import HUMAN_REWARD_ESTIMATE, AnnealedWeight, FeedbackFusion, Fusion, TrustWeight
 
 EST = HUMAN_REWARD_ESTIMATE
 
@@ -125,11 +125,11 @@ def test_rejects_bad_configuration(kwargs, match):
 
 
 def test_state_round_trip_keeps_counters_and_schedule():
-    t = FeedbackFusion("linear", TrustWeight.from_initial(0.5, learners=2))
+    t = FeedbackFusion(Fusion("none", "linear", TrustWeight.from_initial(0.5, learners=2)))
     t._reset(TensorDict({}, [2]), TensorDict({}, [2]))
     _step(t, _step_data([0.0, 0.0], done=[True, False]))
     t.schedule.end_episode([4.0, 4.0], [1.0, 1.0])
-    fresh = FeedbackFusion("linear", TrustWeight.from_initial(0.5, learners=2))
+    fresh = FeedbackFusion(Fusion("none", "linear", TrustWeight.from_initial(0.5, learners=2)))
     fresh.load_state_dict(t.state_dict())
     assert fresh.episodes.tolist() == [1, 0]
     assert fresh.schedule.value().tolist() == pytest.approx([0.75, 0.75])

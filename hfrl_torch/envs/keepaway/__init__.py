@@ -27,6 +27,7 @@ from hfrl_torch.envs.keepaway.policies import (
 from hfrl_torch.envs.keepaway.render import record_episode_gif, render_rgb, write_gif
 from hfrl_torch.envs.keepaway.simulator import CycleOutcome, Decision, KeepawaySimulator, KeepawayState
 from hfrl_torch.envs.keepaway.state_vars import keeper_state_variables
+from hfrl_torch.envs.keepaway.transitions import keeper_transitions
 
 __all__ = [
     "ENV_ID",
@@ -47,6 +48,7 @@ __all__ = [
     "hand_coded_actions",
     "hold_actions",
     "keeper_state_variables",
+    "keeper_transitions",
     "make_benchmark_policy",
     "physics_preset",
     "play_benchmark_policy",

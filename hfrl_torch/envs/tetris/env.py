@@ -53,11 +53,21 @@ class TetrisEnv(EnvBase):
     that the ``game_seed`` observation a partial reset carries along never replays a game);
     otherwise seeds come from the env's generator (see :meth:`set_seed`).
 
+    Masks, TorchRL's way: every observation carries ``action_mask`` [B, A] (the valid placements), and the
+    env keeps its own action spec's mask up to date, so the bare env's random actions are valid. A
+    ``TransformedEnv`` holds a copy of that spec which the env cannot reach: put TorchRL's ``ActionMask()``
+    among its transforms (anywhere in the ``Compose``) so that random actions (``rollout`` without a policy,
+    a collector's ``init_random_frames``, ``check_env_specs``) follow the mask. A policy that is handed a spec
+    (``RandomPolicy``, ``EGreedyModule``) keeps its own copy: give it ``action_mask_key`` where it takes one.
+
     Example:
         >>> env = TetrisEnv(batch=4, rules=TetrisRules(10, 10))
         >>> td = env.reset()
         >>> td["afterstate_features"].shape
         torch.Size([4, 34, 21])
+        >>> env = TransformedEnv(TetrisEnv(batch=4), Compose(StepCounter(), ActionMask()))
+        >>> env.rollout(200, break_when_any_done=False)["step_count"].shape  # random valid placements
+        torch.Size([4, 200, 1])
     """
 
     def __init__(
@@ -170,7 +180,8 @@ class TetrisEnv(EnvBase):
             i = int(bad.nonzero()[0, 0])
             raise ValueError(
                 f"action={int(action[i])} on board {i} is not a valid placement for piece "
-                f"{int(self.engine.pieces[i])}; allowed: the indices where action_mask is True"
+                f"{int(self.engine.pieces[i])}; allowed: the indices where action_mask is True (random "
+                "actions through a TransformedEnv need torchrl's ActionMask() among its transforms)"
             )
         lines = self.engine.step(action.to(self.engine.device)).to(self.device)
         self._lines += lines
