@@ -9,50 +9,18 @@ import asyncio
 import http.client
 import io
 import json
-import time
 import zipfile
 from collections.abc import Callable
-from pathlib import Path
 
 import aiohttp
 import pytest
+from study_web import FAKE_TRAIN, LABELS, study_config, wait_for
 
 from hfrl_torch.interactive.http_guard import SECURITY_HEADERS
 from hfrl_torch.interactive.server import TeachingServer
 from hfrl_torch.interactive.session import TeachingSession
-from hfrl_torch.study.config import StudyConfig
 from hfrl_torch.study.manager import Study
 from hfrl_torch.study.server import MAX_BODY_BYTES, OVER, WAIT, StudyServer
-
-FAKE_TRAIN = Path(__file__).parent / "fake_train.py"  # a worker that starts at once and imports nothing
-LABELS = ("tetris_a", "tetris_b", "keepaway_a")
-
-
-def study_config(tmp_path: Path, **over: object) -> StudyConfig:
-    """A small study: three conditions, a two-trial calibration and a two-item questionnaire."""
-    node = {
-        "name": "t",
-        "dir": str(tmp_path / "study"),
-        "title": "Teach an agent",
-        "consent": "Plain words about the study.",
-        "instructions": "Press Good or Bad.",
-        "practice_s": 5,
-        "calibration": {"trials": 2, "optional": True},
-        "questionnaire": [
-            {
-                "id": "effort",
-                "kind": "likert",
-                "text": "It took effort.",
-                "points": 5,
-                "low": "no",
-                "high": "yes",
-            },
-            {"id": "comments", "kind": "text", "text": "Anything else?", "max_chars": 50},
-        ],
-        "conditions": [{"label": label, "overrides": [f"seed_note={label}"]} for label in LABELS],
-        **over,
-    }
-    return StudyConfig.from_node(node)
 
 
 @pytest.fixture
@@ -112,13 +80,6 @@ def to_teaching(server: StudyServer, code: str) -> dict:
 
 def named_condition(text: str) -> bool:
     return "condition" in text or any(label in text for label in LABELS)
-
-
-def wait_for(condition, timeout: float = 15.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        assert time.monotonic() < deadline, "timed out"
-        time.sleep(0.05)
 
 
 def test_a_participant_walks_every_step_and_no_answer_names_the_condition(served):
