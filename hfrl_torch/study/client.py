@@ -146,6 +146,8 @@ class Teacher:
         self._judge = asyncio.Event()  # something is on screen to judge
         self._ended = asyncio.Event()
         self._first_judge: float | None = None
+        self._showing_since: float | None = None  # arrival of the first game frame since anything else
+        self.reaction_s = 0.3
         self._next_id = 0
         self._finish_sent = False
 
@@ -164,6 +166,8 @@ class Teacher:
     def _on_settings(self, message: dict[str, Any]) -> None:
         if any(message.get(k) != self.settings.get(k) for k in STEADY_KEYS):
             self._last_frame = None
+        if not message.get("live"):
+            self._showing_since = None
         self.settings = message
         self._update_judge()
 
@@ -191,6 +195,8 @@ class Teacher:
             self.record.late_gaps += ratio > LATE_FACTOR
             self.record.worst_gap_ratio = max(self.record.worst_gap_ratio, ratio)
         self._last_frame = (now, unit) if steady else None
+        if self._showing_since is None:
+            self._showing_since = now
         if self._first_judge is None and self._judge.is_set():
             self._first_judge = now
 
@@ -218,7 +224,9 @@ class Teacher:
         if kind in GAME_FRAMES:
             self._on_frame(message, now)
         elif kind == "status":
-            self._last_frame = None
+            self._last_frame = self._showing_since = None
+        elif kind == "config":
+            self.reaction_s = float(message.get("reaction_s", self.reaction_s))
         elif kind == "settings":
             self._on_settings(message)
         elif kind == "role":
@@ -262,6 +270,8 @@ class Teacher:
             await asyncio.sleep(self.rng.uniform(*self.gap_s))
             if not self._judge.is_set() or self._ended.is_set() or self._done():
                 continue
+            if self._showing_since is None or time.monotonic() - self._showing_since < self.reaction_s:
+                continue  # a person judges what they saw: a game on screen at least their reaction time
             acked = len(self.record.acked)
             if self.pause_after is not None and acked >= self.pause_after and not self.paused_ack.is_set():
                 if "pause" not in self._pending:
@@ -272,7 +282,12 @@ class Teacher:
             self._next_id = (self._next_id + 1) % (MAX_PRESS_ID + 1)
             self.record.presses.append(press)
             await self._send(ws, {"type": "feedback", "value": value, "id": press.id}, press)
-        if not self._ended.is_set() and self.finish and not self._finish_sent:
+        if not self.finish and not self._ended.is_set():  # the page closes once its presses are answered
+            while any(isinstance(p, PressRecord) for p in self._pending):
+                await asyncio.sleep(0.05)
+            await ws.close()
+            return
+        if not self._ended.is_set() and not self._finish_sent:
             while any(isinstance(p, PressRecord) for p in self._pending):  # the last presses' answers
                 await asyncio.sleep(0.05)
             self._finish_sent = True
@@ -295,7 +310,7 @@ class Teacher:
             ws = await self._connect(client)
             self.record.connections += 1
             self._pending.clear()
-            self._last_frame = None
+            self._last_frame = self._showing_since = None
             self.role, self.settings = "", {}
             self._judge.clear()
             presser = asyncio.ensure_future(self._press(ws))
@@ -306,7 +321,7 @@ class Teacher:
                 with contextlib.suppress(asyncio.CancelledError, ConnectionError, RuntimeError):
                     await presser
                 await ws.close()
-            if self._finish_sent:
+            if self._finish_sent or (not self.finish and self._done()):
                 break
         for press in self.record.presses:
             if press.answered is None and press.error is None:
@@ -376,6 +391,17 @@ class Participant:
     def _url(self, path: str) -> str:
         return f"{self.base}/p/{self.record.code}/{path}"
 
+    async def _join(self, client: aiohttp.ClientSession) -> str:
+        """A new code; a busy study (429, 503) is asked again, as a person would press Start again."""
+        deadline = time.monotonic() + self.wait_s
+        while True:
+            async with client.post(f"{self.base}/api/join", json={"simulated": True}) as r:
+                if r.status == 200:
+                    return str((await r.json())["code"])
+                if r.status not in (429, 503) or time.monotonic() > deadline:
+                    raise RuntimeError(f"join answered {r.status}: {(await r.text())[:200]}")
+            await asyncio.sleep(self.rng.uniform(0.5, 1.5))
+
     async def _state(self, client: aiohttp.ClientSession) -> dict[str, Any]:
         async with client.get(self._url("api/state")) as r:
             if r.status != 200:
@@ -443,10 +469,7 @@ class Participant:
         it got (``error``: why it stopped)."""
         try:
             if not self.record.code:
-                async with client.post(f"{self.base}/api/join", json={"simulated": True}) as r:
-                    if r.status != 200:
-                        raise RuntimeError(f"join answered {r.status}: {(await r.text())[:200]}")
-                    self.record.code = (await r.json())["code"]
+                self.record.code = await self._join(client)
             state = await self._before_teaching(client, await self._state(client))
             if state["step"] == "teaching":
                 self.record.steps.append("teaching")
