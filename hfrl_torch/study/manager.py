@@ -369,7 +369,7 @@ class Study:
             if item.kind == "likert":
                 if not isinstance(value, int) or isinstance(value, bool) or not 1 <= value <= item.points:
                     raise ValueError(
-                        f"answers.{key}={str(value)[:20]!r} is invalid: must be an integer 1..{item.points}"
+                        f"answers.{key}={repr(value)[:20]} is invalid: must be an integer 1..{item.points}"
                     )
             elif not isinstance(value, str) or len(value) > item.max_chars:
                 raise ValueError(

@@ -136,11 +136,14 @@ def fresh_command(
 
 
 def resume_command(python: str, train_script: Path, run_dir: Path, port: int, token: str) -> list[str]:
-    """The command line that continues the run in ``run_dir`` (its saved config; a new port and token)."""
+    """The command line that continues the run in ``run_dir`` (its saved config; a new port and token).
+    ``trainer=interactive`` lets the command line compose (it names the saved trainer, so it changes
+    nothing)."""
     return [
         python,
         str(train_script),
         f"resume={_quoted(str(run_dir))}",
+        "trainer=interactive",
         f"trainer.port={port}",
         f"trainer.token={token}",
     ]
