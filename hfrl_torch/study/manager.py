@@ -17,6 +17,7 @@ import sys
 import threading
 import time
 from collections.abc import Mapping
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -118,6 +119,9 @@ class Study:
         self._workers: dict[str, Worker] = {}
         self._summaries: dict[str, dict[str, Any]] = {}
         self._lock = threading.RLock()
+        # workers are forked from this one thread, which lives until close(): their PR_SET_PDEATHSIG fires
+        # when the thread that forked them ends, whichever thread calls the study
+        self._spawner = ThreadPoolExecutor(max_workers=1, thread_name_prefix="study-workers")
 
     @classmethod
     def open(
@@ -164,7 +168,7 @@ class Study:
         for p in study._participants.values():
             if p.step == "teaching" and not p.stopped:
                 wait_gone(layout.worker_pid(directory, p.code), OPEN_WAIT_S)
-                study._launch(p)
+                study._try_launch(p)
         return study
 
     def _load_secrets(self) -> None:
@@ -383,7 +387,7 @@ class Study:
     def _start_teaching(self, p: Participant) -> None:
         self._enter(p, "teaching")
         if not p.stopped:
-            self._launch(p)
+            self._try_launch(p)
 
     def _overrides(self, p: Participant) -> list[str]:
         """The condition's train.py overrides, the study's common ones and the calibration's."""
@@ -417,12 +421,25 @@ class Study:
                 self.python, self.train_script, self._overrides(p), run, port, token, seed
             )
         worker = Worker(command, port, token, layout.worker_log(self.directory, p.code), pid_path)
-        worker.start()
+        self._spawner.submit(worker.start).result()
         self._workers[p.code] = worker
         layout.append_event(
             self.directory, "worker_start", code=p.code, pid=worker.pid, port=port, resume=resume
         )
         return True
+
+    def _try_launch(self, p: Participant) -> None:
+        """:meth:`_launch`, where a worker that cannot be started (no port, no process) counts as a crash."""
+        try:
+            self._launch(p)
+        except OSError as exc:
+            layout.append_event(self.directory, "worker_start_failed", code=p.code, error=str(exc)[:200])
+            if p.restarts < MAX_RESTARTS:
+                p.restarts += 1
+                self._save(p)
+                return
+            p.ended = f"the run could not start ({str(exc)[:80]})"
+            self._enter(p, "questionnaire")
 
     def teaching_endpoint(self, code: str) -> tuple[int, str] | None:
         """``(port, worker token)`` of the participant's worker once it accepts connections; else None."""
@@ -457,7 +474,7 @@ class Study:
         if status != CONFIG_EXIT and p.restarts < MAX_RESTARTS:
             p.restarts += 1
             self._save(p)
-            self._launch(p)
+            self._try_launch(p)
             return
         p.ended = f"the run failed (exit status {status})"
         self._enter(p, "questionnaire")
@@ -469,7 +486,7 @@ class Study:
                 self._reap(code)
             for p in self._participants.values():
                 if p.step == "teaching" and not p.stopped and p.code not in self._workers:
-                    self._launch(p)
+                    self._try_launch(p)
 
     def stop(self, code: str) -> None:
         """The researcher pauses the participant: their worker stops (SIGTERM: it saves); the page says so."""
@@ -492,7 +509,7 @@ class Study:
             layout.append_event(self.directory, "resumed_participant", code=p.code)
             if p.step == "teaching":
                 self._reap(p.code)
-                self._launch(p)
+                self._try_launch(p)
 
     def overview(self) -> list[dict[str, Any]]:
         """Every participant for the researcher: step, condition, progress, presses, worker state."""
@@ -536,6 +553,7 @@ class Study:
                 layout.append_event(self.directory, "worker_exit", code=code, status=status, by="study")
                 del self._workers[code]
             layout.append_event(self.directory, "closed")
+        self._spawner.shutdown()
 
 
 def _lines(path: Path) -> int:

@@ -3,8 +3,8 @@
 A worker is launched by command line (never imported), on a free loopback port with its own token, its
 run directory under the participant's, stdout and stderr to ``worker.log`` and its pid in ``worker.pid``.
 It dies with the study server (Linux ``PR_SET_PDEATHSIG`` = SIGTERM, set in the child before it runs:
-the signal comes when the THREAD that started it ends, so start workers from a thread that lives as long
-as the server, its event loop's); train.py saves and stops on SIGTERM. Nothing here blocks for long:
+the signal comes when the THREAD that started it ends, so the study starts every worker from one thread
+that lives as long as the study); train.py saves and stops on SIGTERM. Nothing here blocks for long:
 :meth:`Worker.terminate` sends SIGTERM and :meth:`Worker.check` escalates to SIGKILL after the timeout.
 """
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import stat
+import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -269,3 +270,18 @@ def test_run_without_checkpoint_is_set_aside(
     aside = [d.name for d in run.parent.iterdir() if d.name.startswith("run.unfinished-")]
     assert len(aside) == 1 and (run.parent / aside[0] / "config.yaml").exists()
     assert not any(a.startswith("resume=") for a in _argv(study, p.code)[0])
+
+
+def test_worker_outlives_the_calling_thread(raw: dict[str, Any], tmp_path: Path, opened: list[Study]) -> None:
+    """A worker started from a short-lived thread (a web server's executor) is not killed when that thread
+    ends: PR_SET_PDEATHSIG follows the thread that forks, and the study forks from its own."""
+    study = _open(raw, tmp_path, opened)
+    p = study.join(simulated=False)
+    thread = threading.Thread(target=_to_teaching, args=(study, p.code))
+    thread.start()
+    thread.join()
+    _until(study, lambda: study.teaching_endpoint(p.code) is not None)
+    time.sleep(0.5)
+    study.poll()
+    assert study.overview()[0]["worker"] == "ready"
+    assert [e["event"] for e in layout.read_events(study.directory)].count("worker_exit") == 0
