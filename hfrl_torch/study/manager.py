@@ -122,6 +122,7 @@ class Study:
         # workers are forked from this one thread, which lives until close(): their PR_SET_PDEATHSIG fires
         # when the thread that forked them ends, whichever thread calls the study
         self._spawner = ThreadPoolExecutor(max_workers=1, thread_name_prefix="study-workers")
+        self._closed = False
 
     @classmethod
     def open(
@@ -429,7 +430,10 @@ class Study:
         return True
 
     def _try_launch(self, p: Participant) -> None:
-        """:meth:`_launch`, where a worker that cannot be started (no port, no process) counts as a crash."""
+        """:meth:`_launch`, where a worker that cannot be started (no port, no process) counts as a crash;
+        nothing after :meth:`close` (the participant's run starts when the study is opened again)."""
+        if self._closed:
+            return
         try:
             self._launch(p)
         except OSError as exc:
@@ -543,6 +547,7 @@ class Study:
         """Stop every worker (SIGTERM: each saves) and wait for them; their participants stay in teaching
         and resume when the study is opened again."""
         with self._lock:
+            self._closed = True
             workers = list(self._workers.items())
             for _, worker in workers:
                 worker.terminate(timeout)

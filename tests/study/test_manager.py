@@ -285,3 +285,15 @@ def test_worker_outlives_the_calling_thread(raw: dict[str, Any], tmp_path: Path,
     study.poll()
     assert study.overview()[0]["worker"] == "ready"
     assert [e["event"] for e in layout.read_events(study.directory)].count("worker_exit") == 0
+
+
+def test_nothing_starts_after_close(raw: dict[str, Any], tmp_path: Path, opened: list[Study]) -> None:
+    study = _open(raw, tmp_path, opened)
+    p = study.join(simulated=False)
+    study.advance(p.code, "consent", "agree", {})
+    study.advance(p.code, "instructions", "next", {})
+    study.advance(p.code, "practice", "next", {})
+    study.close()
+    assert study.advance(p.code, "calibration", "skip", {})["step"] == "teaching"  # kept for the next open
+    study.poll()
+    assert study.overview()[0]["worker"] == "none"
