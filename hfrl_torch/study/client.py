@@ -303,6 +303,11 @@ class Teacher:
                     raise ConnectionError(f"cannot open {self.ws_url}: {e}") from e
                 await asyncio.sleep(0.5)
 
+    def _pressing_ended(self, task: asyncio.Future[None]) -> None:
+        if not task.cancelled() and task.exception() is not None:
+            error = task.exception()
+            self.record.errors.append(f"pressing stopped: {type(error).__name__}: {error}")
+
     async def run(self, client: aiohttp.ClientSession) -> TeachRecord:
         """Teach until the run ends (its ``end`` message, or Finish and save answered); a connection that
         drops before is opened again (for up to ``connect_s``). Returns :attr:`record`."""
@@ -314,6 +319,7 @@ class Teacher:
             self.role, self.settings = "", {}
             self._judge.clear()
             presser = asyncio.ensure_future(self._press(ws))
+            presser.add_done_callback(self._pressing_ended)
             try:
                 await self._read(ws)
             finally:
