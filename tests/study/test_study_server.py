@@ -9,6 +9,8 @@ import asyncio
 import http.client
 import io
 import json
+import threading
+import time
 import zipfile
 from collections.abc import Callable
 
@@ -384,4 +386,67 @@ def test_a_run_ending_reaches_the_page_then_the_study_goes_on(served, monkeypatc
     wait_for(lambda: api(server, "GET", f"/p/{code}/api/state")[1]["step"] == "questionnaire")
     got, close, why = asyncio.run(_teach(url, origin, []))
     assert close == OVER and "ended" in why
+    assert server.errors == 0
+
+
+def test_a_page_that_never_reads_holds_up_no_one(served, monkeypatch):
+    """Participant A's page stops reading while A's run sends it large frames: A's presses still reach A's
+    run, and B's presses are acknowledged promptly through the same study server."""
+    study, server = served
+    sessions = {name: TeachingSession(actions_per_s=5.0) for name in "AB"}
+    teachers = {
+        name: TeachingServer(s, port=0, token=f"token-{name}-0123456789") for name, s in sessions.items()
+    }
+    for teacher in teachers.values():
+        teacher.start()
+    codes = {join(server): "A", join(server): "B"}
+    real = study.teaching_endpoint
+    endpoints = {code: (teachers[n].port, teachers[n].token) for code, n in codes.items()}
+    monkeypatch.setattr(study, "teaching_endpoint", lambda code: endpoints[code] if real(code) else None)
+    for code in codes:
+        to_teaching(server, code)
+    wait_for(lambda: all(real(code) is not None for code in codes))
+    a, b = list(codes)
+    origin = f"http://127.0.0.1:{server.port}"
+    stop = threading.Event()
+
+    def flood() -> None:  # A's run shows 50 KB frames, as fast as its server sends them
+        blob = "x" * 50_000
+        while not stop.is_set():
+            sessions["A"].publish({"type": "status", "text": blob})
+            time.sleep(0.005)
+
+    async def scenario() -> list[float]:
+        async with aiohttp.ClientSession() as client:
+            stalled = await client.ws_connect(f"ws://127.0.0.1:{server.port}/p/{a}/teach/ws", origin=origin)
+            await asyncio.sleep(
+                4.0
+            )  # A's page reads nothing: the study's buffer to it fills (~270 KB measured)
+            for i in range(5):
+                await stalled.send_str(json.dumps({"type": "feedback", "value": 1, "id": i}))
+            waits = []
+            async with client.ws_connect(f"ws://127.0.0.1:{server.port}/p/{b}/teach/ws", origin=origin) as ws:
+                for i in range(10):
+                    sent = time.monotonic()
+                    await ws.send_str(json.dumps({"type": "feedback", "value": -1, "id": i}))
+                    while True:
+                        m = json.loads((await ws.receive(timeout=10)).data)
+                        if m["type"] in ("ack", "error") and m.get("id") == i:
+                            waits.append(time.monotonic() - sent)
+                            break
+                    await asyncio.sleep(0.1)
+            await stalled.close()
+            return waits
+
+    flooding = threading.Thread(target=flood, daemon=True)
+    flooding.start()
+    try:
+        waits = asyncio.run(scenario())
+        wait_for(lambda: sessions["A"].taken == 5, timeout=5)
+    finally:
+        stop.set()
+        flooding.join()
+        for teacher in teachers.values():
+            teacher.stop()
+    assert sessions["B"].taken == 10 and max(waits) < 1.0, waits
     assert server.errors == 0
