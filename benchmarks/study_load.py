@@ -386,10 +386,20 @@ def main() -> None:
     say(f"study.py stopped ({code})")
     acked = logged = lost = duplicated = steady = late = 0
     ack_ms: list[float] = []
+    by_condition: dict[str, dict[str, Any]] = {}
     for row in rows:
         presses: list[PressRecord] = row.pop("presses")
         ms = [p.ack_ms for p in presses if p.ack_ms is not None]
         ack_ms += ms
+        if row.get("code") and layout.participant_json(directory, row["code"]).exists():
+            row["condition"] = layout.read_json(layout.participant_json(directory, row["code"]))["condition"]
+            group = by_condition.setdefault(
+                row["condition"], {"participants": 0, "ms": [], "steady": 0, "late": 0}
+            )
+            group["participants"] += 1
+            group["ms"] += ms
+            group["steady"] += row.get("steady_gaps", 0)
+            group["late"] += row.get("late_gaps", 0)
         row["ack_ms_p99"] = None if not ms else round(percentile(ms, 99) or 0, 1)
         steady += row.get("steady_gaps", 0)
         late += row.get("late_gaps", 0)
@@ -426,6 +436,15 @@ def main() -> None:
         "cores": os.cpu_count(),
         "load_before": [round(x, 2) for x in load_before],
         "load_after": [round(x, 2) for x in load_after],
+        "by_condition": {
+            label: {
+                "participants": g["participants"],
+                "ack_ms_p50": None if not g["ms"] else round(percentile(g["ms"], 50) or 0, 1),
+                "ack_ms_p99": None if not g["ms"] else round(percentile(g["ms"], 99) or 0, 1),
+                "frame_late_share": None if not g["steady"] else round(g["late"] / g["steady"], 4),
+            }
+            for label, g in sorted(by_condition.items())
+        },
         "threads": {
             "worker": 1,
             "benchmark_torch": 1,
