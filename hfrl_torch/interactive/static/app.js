@@ -476,8 +476,10 @@ function studyOver(reason) {
 function connect() {
   const ws = new WebSocket(wsUrl);
   S.ws = ws;
-  ws.onopen = () => { S.connected = true; S.everConnected = true; S.failures = 0; S.closeReason = ""; render(); };
-  ws.onmessage = onMessage;
+  const opened = () => { S.connected = true; S.everConnected = true; S.failures = 0; S.closeReason = ""; render(); };
+  // in a study the socket opens at the study's proxy: the page is connected once the run itself speaks
+  ws.onopen = () => { if (!STUDY) opened(); };
+  ws.onmessage = (ev) => { if (STUDY && !S.connected && S.ws === ws) opened(); onMessage(ev); };
   ws.onclose = (ev) => {
     if (S.ws !== ws) return;
     S.connected = false;
