@@ -33,7 +33,7 @@ import threading
 import time
 import zipfile
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -49,6 +49,7 @@ from hfrl_torch.interactive.messages import RateLimiter, shown
 from hfrl_torch.interactive.server import HARD_MAX_BYTES, TAB_NAME
 from hfrl_torch.interactive.server import STATIC as TEACH_STATIC
 from hfrl_torch.interactive.server import STATIC_FILES as TEACH_FILES
+from hfrl_torch.study import layout
 from hfrl_torch.study.manager import StepConflict, Study
 
 LOG = logging.getLogger("hfrl_torch.study")
@@ -65,7 +66,6 @@ SUMMARY_HIDDEN = ("run_dir", "feedback_log", "summary_file", "resume")
 BEFORE_TEACHING = ("consent", "instructions", "practice", "calibration")
 # the close codes the teaching page's proxy uses (app.js shows the reason): try again soon, or it is over
 WAIT, OVER = 4000, 4001
-EXCLUDED_FROM_DATA = frozenset({"researcher_token", "codes.txt"})
 
 
 class _Bad(Exception):
@@ -111,7 +111,7 @@ def data_files(directory: Path) -> Iterator[Path]:
     """The study directory's files that the researcher's download holds: all but the researcher token and
     the participant code list."""
     for path in sorted(directory.rglob("*")):
-        if path.is_file() and not path.is_symlink() and path.name not in EXCLUDED_FROM_DATA:
+        if path.is_file() and not path.is_symlink() and path.name not in layout.SECRETS:
             yield path
 
 
@@ -152,7 +152,7 @@ class StudyServer(GuardedServer):
         max_misses_per_s: float = 5.0,
         poll_s: float = 0.5,
         rejection_log_s: float = 10.0,
-        clock: Any = time.monotonic,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
         super().__init__(
             host,
@@ -262,7 +262,7 @@ class StudyServer(GuardedServer):
 
     # --- helpers ---
 
-    async def _call(self, fn: Any, *args: Any) -> Any:
+    async def _call(self, fn: Callable[..., Any], *args: Any) -> Any:
         """``fn(*args)`` on the study's one worker thread."""
         return await asyncio.get_running_loop().run_in_executor(self._executor, fn, *args)
 
