@@ -43,12 +43,17 @@ async def _flood_then_kill(study: StudyProc, directory: Path) -> list[Participan
         else:
             teachers = [p.teacher for p in people if p.teacher is not None]
             said = [
-                ([x.error for x in t.record.presses if x.error][-3:], t.record.errors, t.settings)
+                (
+                    [x.error for x in t.record.presses if x.error][-3:],
+                    t.record.errors,
+                    t.record.connections,
+                    t.settings,
+                )
                 for t in teachers
             ]
             raise AssertionError(
-                f"presses acknowledged before the kill: {acked}; the pages' last refusals, errors and "
-                f"settings: {said}; the study's log:\n{study.log.read_text()}"
+                f"presses acknowledged before the kill: {acked}; the pages' last refusals, errors, "
+                f"connections and settings: {said}; the study's log:\n{study.log.read_text()}"
             )
         study.kill([layout.worker_pid(directory, p.record.code) for p in people])  # presses in flight
         for t in tasks:
