@@ -39,6 +39,7 @@ class Served:
         self.codes = codes
 
     def ws(self, code: str) -> str:
+        """The teaching WebSocket of ``code`` through the study's proxy."""
         return self.study.base.replace("http", "ws", 1) + f"/p/{code}/teach/ws"
 
 
