@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import json
 import os
 import random
@@ -52,7 +53,11 @@ from playwright.async_api import async_playwright
 
 from hfrl_torch.study import layout
 from hfrl_torch.study.client import (
+    GAMMA_SCALE,
+    GAMMA_SHAPE,
     LATE_FACTOR,
+    PRESS_GAP_S,
+    STEPS_BEFORE_TEACHING,
     Participant,
     PressRecord,
     TeachRecord,
@@ -208,87 +213,119 @@ def late_share_of_page(rec: dict[str, Any]) -> tuple[int, int]:
     return steady, late
 
 
+async def _settled(scripted: Participant, client: aiohttp.ClientSession, step: str) -> dict[str, Any]:
+    """The participant's state once it has left ``step`` (or after 10 s)."""
+    state = await scripted._state(client)
+    for _ in range(50):
+        if state["step"] != step:
+            break
+        await asyncio.sleep(0.2)
+        state = await scripted._state(client)
+    return state
+
+
+async def _calibrate(page: Any, rng: random.Random, trials: int) -> None:
+    """The page's reaction-time test: Space to start each trial, Space again a drawn delay after the
+    circle shows (the client's gamma(2, 0.28), at least 0.15 s: sooner counts as pressing too soon)."""
+    for _ in range(trials):
+        await page.focus("#target-box")
+        await page.keyboard.press("Space")
+        await page.wait_for_selector("#target:not([hidden])", timeout=15_000)
+        await asyncio.sleep(max(rng.gammavariate(GAMMA_SHAPE, GAMMA_SCALE), 0.15))
+        await page.keyboard.press("Space")
+
+
+async def _answer(page: Any, rng: random.Random) -> None:
+    """The questionnaire's form: a drawn point of every Likert item, a sentence in the text box."""
+    for box in await page.query_selector_all("#answers fieldset[data-kind=likert]"):
+        inputs = await box.query_selector_all("input")
+        await inputs[rng.randrange(len(inputs))].check()
+    for text in await page.query_selector_all("#answers textarea"):
+        await text.fill("scripted participant in Chromium")
+    await page.click("#answers button[type=submit]")
+    await page.wait_for_selector("#done:not([hidden])", timeout=30_000)
+
+
 async def chromium_participant(
     base: str, seed: int, seconds: float, browser: Any, client: aiohttp.ClientSession
 ) -> dict[str, Any]:
-    """A participant in Chromium: joins through the API (simulated), goes through the study's pages by
-    clicking (a step whose page cannot be driven is done through the API, and counted), teaches on the
-    teaching page with the keys at a person's pace, finishes, answers."""
+    """A participant in Chromium: joins through the API (simulated), then goes through the study's pages
+    by clicking and pressing keys, as a person would: consent, instructions, practice, the reaction-time
+    test, the teaching page (keys at a person's pace, Finish and save, Continue) and the questionnaire. A
+    step the page could not be driven through is done through the API and named in ``api_steps``."""
     rng = random.Random(seed)
     scripted = Participant(base, seed)
     row: dict[str, Any] = {"kind": "chromium", "api_steps": [], "ui_steps": []}
-    async with client.post(f"{base}/api/join", json={"simulated": True}) as r:
-        scripted.record.code = row["code"] = (await r.json())["code"]
+    scripted.record.code = row["code"] = await scripted._join(client)
     context = await browser.new_context(viewport={"width": 1280, "height": 900})
     await context.add_init_script(RECORD)
     page = await context.new_page()
     page.on("dialog", lambda d: asyncio.ensure_future(d.accept()))
+    rec = None
     try:
         await page.goto(f"{base}/p/{scripted.record.code}/")
         state = await scripted._state(client)
         clicks = {"consent": "#agree", "instructions": "#instructions-next", "practice": "#practice-next"}
-        actions = {"consent": "agree", "instructions": "next", "practice": "next"}
-        while state["step"] in ("consent", "instructions", "practice", "calibration"):
+        while state["step"] in STEPS_BEFORE_TEACHING:
             step = state["step"]
-            if (
-                step == "calibration"
-            ):  # timed by the page's own test: done through the API, as the client does
-                row["api_steps"].append(step)
-                delays = scripted._delays(int(state["study"]["calibration"]["trials"]))
-                state = await scripted._step(client, step, "next", {"delays_s": delays})
-                continue
             try:
-                await page.click(clicks[step], timeout=(float(state["study"]["practice_s"]) + 15) * 1000)
-                for _ in range(50):
-                    await asyncio.sleep(0.2)
-                    state = await scripted._state(client)
-                    if state["step"] != step:
-                        break
+                if step == "calibration":
+                    await _calibrate(page, rng, int(state["study"]["calibration"]["trials"]))
+                else:
+                    wait_s = float(state["study"]["practice_s"]) + 15
+                    await page.click(clicks[step], timeout=wait_s * 1000)
+                state = await _settled(scripted, client, step)
+                if state["step"] == step:
+                    raise PlaywrightError(f"the page did not leave {step}")
                 row["ui_steps"].append(step)
             except PlaywrightError:
                 row["api_steps"].append(step)
-                state = await scripted._step(client, step, actions[step])
-        deadline = time.monotonic() + 300
-        while not state["teaching"]["ready"] and state["step"] == "teaching" and time.monotonic() < deadline:
-            await asyncio.sleep(0.5)
-            state = await scripted._state(client)
-        await page.goto(f"{base}/p/{scripted.record.code}/teach/")
+                data = {"delays_s": scripted._delays(8)} if step == "calibration" else None
+                state = await scripted._step(client, step, "agree" if step == "consent" else "next", data)
+        try:
+            await page.click("#teach-link", timeout=30_000)
+            await page.wait_for_url(re.compile(r"/teach/$"))
+            row["ui_steps"].append("teach-link")
+        except PlaywrightError:
+            row["api_steps"].append("teach-link")
+            await page.goto(f"{base}/p/{scripted.record.code}/teach/")
         await page.wait_for_function("!document.getElementById('good').disabled", timeout=300_000)
-        keys = ["/", "z"]
         started = time.monotonic()
         while time.monotonic() - started < seconds:
-            await asyncio.sleep(rng.uniform(0.7, 1.5))
+            await asyncio.sleep(rng.uniform(*PRESS_GAP_S))
             if await page.evaluate("!document.getElementById('good').disabled"):
-                await page.keyboard.press(keys[0] if rng.random() < 0.7 else keys[1])
+                await page.keyboard.press("/" if rng.random() < 0.7 else "z")
             elif await page.evaluate("document.getElementById('finish').disabled"):
                 break  # the run ended by itself
         if not await page.evaluate("document.getElementById('finish').disabled"):
             await page.click("#finish")
+        await page.wait_for_selector("#summary:not([hidden])", timeout=120_000)
         rec = await page.evaluate("window.__rec")
-        for _ in range(120):  # the run saves and ends; the study moves the participant on
-            state = await scripted._state(client)
-            if state["step"] != "teaching":
-                break
-            await asyncio.sleep(0.5)
-        rec = await page.evaluate("window.__rec")
-        if state["step"] == "questionnaire":
-            answers = scripted._answers(state["study"]["questionnaire"])
-            state = await scripted._step(client, "questionnaire", "next", {"answers": answers})
-        row["step"] = state["step"]
-    except Exception as e:
+        try:
+            await page.click("#summary-continue a", timeout=10_000)
+            await page.wait_for_selector("#questionnaire:not([hidden])", timeout=60_000)
+            await _answer(page, rng)
+            row["ui_steps"].append("questionnaire")
+        except PlaywrightError:
+            row["api_steps"].append("questionnaire")
+            state = await scripted._until(client, lambda s: s["step"] != "teaching", "the run did not end")
+            if state["step"] == "questionnaire":
+                answers = scripted._answers(state["study"]["questionnaire"])
+                await scripted._step(client, "questionnaire", "next", {"answers": answers})
+        row["step"] = (await scripted._state(client))["step"]
+    except Exception as e:  # the row says how far it got
         row["error"] = f"{type(e).__name__}: {e}"
-        rec = await page.evaluate("window.__rec") if not page.is_closed() else None
+        if rec is None and not page.is_closed():
+            with contextlib.suppress(PlaywrightError):
+                rec = await page.evaluate("window.__rec")
     finally:
         await context.close()
     presses = []
     if rec:
         for a in rec["acks"]:
             sent = rec["sent"].get(str(a["id"]))
-            if sent is None:
-                continue
-            # wall times from the page's clock are not needed: the journal match uses a wide window
-            press = PressRecord(a["id"], a["value"], sent / 1000, 0.0, a["t"] / 1000, time.time(), ack=a)
-            presses.append(press)
+            if sent is not None:  # on the page's clock: matched to the journal by order and content only
+                presses.append(PressRecord(a["id"], a["value"], sent / 1000, 0.0, a["t"] / 1000, 0.0, ack=a))
         row["steady_gaps"], row["late_gaps"] = late_share_of_page(rec)
         row["errors"] = [e["message"] for e in rec["errors"]]
     row["presses"] = presses
