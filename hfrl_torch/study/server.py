@@ -24,8 +24,11 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import io
+import json
 import logging
+import math
 import queue
 import re
 import secrets
@@ -66,6 +69,7 @@ SUMMARY_HIDDEN = ("run_dir", "feedback_log", "summary_file", "resume")
 BEFORE_TEACHING = ("consent", "instructions", "practice", "calibration")
 # the close codes the teaching page's proxy uses (app.js shows the reason): try again soon, or it is over
 WAIT, OVER = 4000, 4001
+CONFIG_PREFIX = '{"type": "config"'  # how TeachingServer's opening message starts (json.dumps' spacing)
 
 
 class _Bad(Exception):
@@ -75,6 +79,25 @@ class _Bad(Exception):
         super().__init__(why)
         self.status = status
         self.kind = kind
+
+
+def finite(value: Any) -> Any:
+    """``value`` with every NaN or infinity replaced by None (a run's metrics hold NaN, which JSON, and so a
+    browser's ``response.json()``, does not take)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: finite(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [finite(v) for v in value]
+    return value
+
+
+def json_response(value: Any, status: int = 200) -> web.Response:
+    """A JSON answer that a browser can parse (see :func:`finite`)."""
+    return web.json_response(
+        finite(value), status=status, dumps=functools.partial(json.dumps, allow_nan=False)
+    )
 
 
 def participant_view(state: dict[str, Any]) -> dict[str, Any]:
@@ -87,6 +110,22 @@ def participant_view(state: dict[str, Any]) -> dict[str, Any]:
         if "checkpoint" in summary:
             view["summary"]["checkpoint"] = bool(summary["checkpoint"])
     return view
+
+
+def blinded(text: str) -> str:
+    """A message of the run for a participant's page: the run's opening ``config`` without its
+    ``weight_sentence``, which names the condition's fusion (and the thesis's equations); anything else as
+    it is (only the opening message is parsed)."""
+    if not text.startswith(CONFIG_PREFIX):
+        return text
+    try:
+        message = json.loads(text)
+    except ValueError:
+        return text
+    if not isinstance(message, dict) or message.get("type") != "config":
+        return text
+    message.pop("weight_sentence", None)
+    return json.dumps(message)
 
 
 class _ChunkQueue(io.RawIOBase):
@@ -268,7 +307,7 @@ class StudyServer(GuardedServer):
 
     def _bad(self, error: _Bad) -> web.Response:
         self.rejections.add(error.kind, str(error))
-        return web.json_response({"error": str(error)}, status=error.status)
+        return json_response({"error": str(error)}, status=error.status)
 
     async def _code(self, request: web.Request, limited: bool = False) -> str:
         """The request's participant code, if a participant has it (else a 404, or 429 when unknown codes
@@ -341,7 +380,7 @@ class StudyServer(GuardedServer):
                 raise _Bad(403, "join refused", why) from None
         except _Bad as e:
             return self._bad(e)
-        return web.json_response({"code": participant.code})
+        return json_response({"code": participant.code})
 
     async def _page(self, request: web.Request) -> web.StreamResponse:
         try:
@@ -368,7 +407,7 @@ class StudyServer(GuardedServer):
             code = await self._code(request, limited=True)
         except _Bad as e:
             return self._bad(e)
-        return web.json_response(participant_view(await self._call(self.study.state, code)))
+        return json_response(participant_view(await self._call(self.study.state, code)))
 
     async def _step(self, request: web.Request) -> web.StreamResponse:
         try:
@@ -386,12 +425,12 @@ class StudyServer(GuardedServer):
                 state = await self._call(self.study.advance, code, step, action, data)
             except StepConflict as e:
                 self.rejections.add("stale step", f"{code}: {shown(step)} is not the current step")
-                return web.json_response(participant_view(e.state), status=409)
+                return json_response(participant_view(e.state), status=409)
             except (UserError, ValueError) as e:
                 raise _Bad(400, "invalid", str(e).splitlines()[0] if str(e) else "invalid step") from None
         except _Bad as e:
             return self._bad(e)
-        return web.json_response(participant_view(state))
+        return json_response(participant_view(state))
 
     async def _teach_page(self, request: web.Request) -> web.StreamResponse:
         try:
@@ -470,12 +509,12 @@ class StudyServer(GuardedServer):
         return page
 
     @staticmethod
-    async def _pump(source: Any, sink: Any) -> None:
-        """Copy frames from ``source`` to ``sink`` until either closes."""
+    async def _pump(source: Any, sink: Any, text: Callable[[str], str] = str) -> None:
+        """Copy frames from ``source`` to ``sink`` (text frames through ``text``) until either closes."""
         async for msg in source:
             try:
                 if msg.type == WSMsgType.TEXT:
-                    await sink.send_str(msg.data)
+                    await sink.send_str(text(msg.data))
                 elif msg.type == WSMsgType.BINARY:
                     await sink.send_bytes(msg.data)
                 else:
@@ -488,7 +527,7 @@ class StudyServer(GuardedServer):
         to itself, never its presses nor anyone else. When the run's side closes, the page is closed with a
         reason it shows; when the page closes, so does its connection to the run."""
         up = asyncio.ensure_future(self._pump(page, worker))
-        down = asyncio.ensure_future(self._pump(worker, page))
+        down = asyncio.ensure_future(self._pump(worker, page, blinded))
         try:
             await asyncio.wait({up, down}, return_when=asyncio.FIRST_COMPLETED)
         finally:
@@ -508,7 +547,7 @@ class StudyServer(GuardedServer):
         return web.FileResponse(STATIC / "admin.html")
 
     async def _participants(self, request: web.Request) -> web.StreamResponse:
-        return web.json_response(await self._call(self.study.overview))
+        return json_response(await self._call(self.study.overview))
 
     async def _control(self, request: web.Request) -> web.StreamResponse:
         try:
@@ -517,7 +556,7 @@ class StudyServer(GuardedServer):
             return self._bad(e)
         action = request.match_info["action"]
         await self._call(self.study.stop if action == "stop" else self.study.resume, code)
-        return web.json_response({"code": code, "done": action})
+        return json_response({"code": code, "done": action})
 
     def _zip_into(self, chunks: queue.Queue[bytes | None], cancelled: threading.Event) -> None:
         """Write the study directory's zip into ``chunks`` (None last), file by file."""

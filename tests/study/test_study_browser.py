@@ -150,6 +150,7 @@ def teach_and_finish(page: Page, directory: Path, code: str) -> None:
         refused.append(page.inner_text("#last-press"))
     assert page.inner_text("#given") == "1", refused
     assert "→" in page.inner_text("#last-press")  # the run's acknowledgement, relayed by the study
+    assert page.is_hidden("#weight") and "fusion" not in page.inner_text("body")  # blind to the condition
     page.once("dialog", lambda d: d.accept())
     page.click("#finish")
     page.wait_for_selector("#summary:not([hidden])", timeout=60000)

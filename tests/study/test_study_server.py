@@ -316,6 +316,7 @@ def acked(n: int) -> Callable[[list[dict]], bool]:
 def test_the_proxy_relays_a_teaching_servers_acks_and_says_why_it_closes(served, monkeypatch):
     study, server = served
     session = TeachingSession(actions_per_s=5.0)
+    session.info = {"weight_name": "Weight", "weight_sentence": "w: fusion=human_only (thesis eq. 4.2)"}
     teacher = TeachingServer(session, port=0, token="worker-secret-token")
     teacher.start()
     real = study.teaching_endpoint
@@ -338,6 +339,7 @@ def test_the_proxy_relays_a_teaching_servers_acks_and_says_why_it_closes(served,
         acks = [m for m in got if m["type"] == "ack"]
         assert [m["id"] for m in acks] == [0, 1, 2] and acks[-1]["given"] == 3
         assert got[0]["type"] == "config" and session.taken == 3
+        assert "weight_sentence" not in got[0] and "fusion" not in json.dumps(got)  # blind to the condition
         with pytest.raises(aiohttp.WSServerHandshakeError) as refused:  # a page of another origin
             asyncio.run(_teach(url, "http://evil.example", [json.dumps({"type": "finish"})]))
         assert refused.value.status == 403 and session.ending is None
@@ -450,3 +452,19 @@ def test_a_page_that_never_reads_holds_up_no_one(served, monkeypatch):
             teacher.stop()
     assert sessions["B"].taken == 10 and max(waits) < 1.0, waits
     assert server.errors == 0
+
+
+def test_a_runs_nan_reaches_the_researcher_as_null_in_strict_json(served):
+    """A run's metrics may hold NaN, which a browser's JSON parser refuses: the table gets null instead."""
+    study, server = served
+    code = join(server)
+    run = study.directory / "participants" / code / "run"
+    run.mkdir(parents=True, exist_ok=True)
+    (run / "metrics.jsonl").write_text('{"iteration": 1, "loss": NaN, "lines": 2.0}\n')
+
+    def strict(name: str) -> None:
+        raise ValueError(f"{name} is not JSON")
+
+    status, _, body = request(server, "GET", "/admin/api/participants", headers=bearer(study))
+    rows = json.loads(body, parse_constant=strict)
+    assert status == 200 and rows[0]["progress"] == {"iteration": 1, "loss": None, "lines": 2.0}

@@ -531,6 +531,7 @@ speed.addEventListener("change", () => {
   speed.blur();
 });
 speed.addEventListener("pointerup", () => speed.blur());
+if (STUDY) document.body.classList.add("study");  // a study's participant: no weight, which tells the condition
 render();
 drawCurve();
 connect();
