@@ -62,7 +62,7 @@ CODE = re.compile(r"[A-Za-z0-9-]{1,64}")  # what may be a code; the study decide
 MAX_BODY_BYTES = 32768
 CLOSE_TIMEOUT_S = 0.5
 STOP_TIMEOUT_S = 5.0
-WORKER_CONNECT_S = 5.0
+WORKER_CONNECT_S = 10.0  # a run that does not answer the handshake in this long: the page tries again
 # what a participant's page may see of the study's state: never the condition, the run's paths or commands
 PARTICIPANT_FIELDS = ("step", "study", "teaching", "stopped", "ended", "summary")
 SUMMARY_HIDDEN = ("run_dir", "feedback_log", "summary_file", "resume")
@@ -491,11 +491,14 @@ class StudyServer(GuardedServer):
             query = urlencode({"token": token, "tab": tab if TAB_NAME.fullmatch(tab) else ""})
             assert self._client is not None
             try:
-                worker = await self._client.ws_connect(
-                    f"ws://127.0.0.1:{int(port)}/ws?{query}",
-                    origin=f"http://127.0.0.1:{int(port)}",
-                    max_msg_size=HARD_MAX_BYTES,
-                    timeout=aiohttp.ClientWSTimeout(ws_close=CLOSE_TIMEOUT_S),
+                worker = await asyncio.wait_for(
+                    self._client.ws_connect(
+                        f"ws://127.0.0.1:{int(port)}/ws?{query}",
+                        origin=f"http://127.0.0.1:{int(port)}",
+                        max_msg_size=HARD_MAX_BYTES,
+                        timeout=aiohttp.ClientWSTimeout(ws_close=CLOSE_TIMEOUT_S),
+                    ),
+                    WORKER_CONNECT_S,
                 )
             except (aiohttp.ClientError, OSError, asyncio.TimeoutError):
                 await page.close(code=WAIT, message=b"The run is not answering yet: this page tries again.")
