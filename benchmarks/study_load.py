@@ -117,11 +117,13 @@ def say(text: str) -> None:
     print(f"[{time.strftime('%H:%M:%S')}] {text}", file=sys.stderr, flush=True)
 
 
-def study_command(directory: Path, participants: int, python: str) -> list[str]:
+def study_command(
+    directory: Path, participants: int, python: str, conditions: dict[str, list[str]]
+) -> list[str]:
     """``study.py`` with the benchmark's study: the pilot's texts and questionnaire, its own conditions."""
     conditions = ",".join(
         "{label:" + label + ",overrides:[" + ",".join(f"'{o}'" for o in overrides) + "]}"
-        for label, overrides in CONDITIONS.items()
+        for label, overrides in conditions.items()
     )
     return [
         python,
@@ -397,6 +399,9 @@ def main() -> None:
     parser.add_argument("--spread", type=float, default=10.0, help="joins spread over this many seconds")
     parser.add_argument("--timeout", type=float, default=1200.0, help="give up on the crowd after this")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--domains", default="tetris,keepaway", help="the conditions' domains, comma-separated (default both)"
+    )
     parser.add_argument("--study-dir", type=Path, default=None, help="default: a new temporary directory")
     parser.add_argument("--keep", action="store_true", help="keep the study directory (printed)")
     args = parser.parse_args()
@@ -404,12 +409,17 @@ def main() -> None:
         raise SystemExit(f"--chromium={args.chromium} is invalid: must be in 0..--participants")
     if args.chromium and not Path(CHROMIUM).exists():
         raise SystemExit(f"--chromium={args.chromium} needs Chromium at {CHROMIUM}; pass --chromium 0")
+    domains = args.domains.split(",")
+    conditions = {k: v for k, v in CONDITIONS.items() if k.split("_")[0] in domains}
+    if not conditions or not set(domains) <= {"tetris", "keepaway"}:
+        raise SystemExit(f"--domains={args.domains} is invalid: allowed tetris, keepaway or both")
     torch.set_num_threads(1)
     directory = args.study_dir or Path(tempfile.mkdtemp(prefix="study_load_")) / "bench"
     load_before = os.getloadavg()
     started = time.perf_counter()
     proc, base = start_study(
-        study_command(directory, args.participants, sys.executable), directory.parent / "study.log"
+        study_command(directory, args.participants, sys.executable, conditions),
+        directory.parent / "study.log",
     )
     say(f"study.py serves {base} from {directory}")
     try:
@@ -488,7 +498,7 @@ def main() -> None:
             "why": "each train.py worker runs with threads=1: with many runs on few cores, more threads per "
             "run only oversubscribe the cores",
         },
-        "conditions": CONDITIONS,
+        "conditions": conditions,
         "study_exit": code,
         "rows": rows,
         "study_dir": str(directory) if args.keep else None,
