@@ -1,8 +1,9 @@
 """kill -9 of a whole study mid-study (the server and every participant's train.py at once), then the same
-command again: every participant is back at their step, teaching participants' workers come back with
-``resume=``, and every press acknowledged through the study's proxy before the kill is in that
-participant's feedback log exactly once (a flood of presses, one participant paused: the loop of a paused
-run drains nothing, so its presses are on disk only in the press journal when the kill comes)."""
+command again: every participant is back at their step (one at the instructions, two teaching), the
+teaching participants' workers come back with ``resume=``, and every press acknowledged through the
+study's proxy before the kill is in that participant's feedback log exactly once (a flood of presses, one
+participant paused: the loop of a paused run drains nothing, so its presses are on disk only in the press
+journal when the kill comes)."""
 
 from __future__ import annotations
 
@@ -23,9 +24,14 @@ FLOOD_GAP_S = (0.12, 0.25)  # 4-8 presses a second, under the run's 20 messages 
 ACKED_BEFORE_KILL = 12
 
 
-async def _flood_then_kill(study: StudyProc, directory: Path) -> list[Participant]:
-    """Two participants flood their runs with presses (the second pauses its run after 4); once each has
-    ``ACKED_BEFORE_KILL`` presses acknowledged (the second's mostly while paused), the study is killed."""
+async def _flood_then_kill(study: StudyProc, directory: Path) -> tuple[list[Participant], str]:
+    """A third participant stops reading at the instructions; two flood their runs with presses (the
+    second pauses its run after 4); once each has ``ACKED_BEFORE_KILL`` presses acknowledged (the second's
+    mostly while paused), the study is killed. Returns the two teachers and the reader's code."""
+    reader = Participant(study.base, 3)
+    async with aiohttp.ClientSession() as client:
+        reader.record.code = await reader._join(client)
+        assert (await reader._step(client, "consent", "agree"))["step"] == "instructions"
     people = [
         Participant(study.base, seed, presses=None, gap_s=FLOOD_GAP_S, pause_after=pause, finish=False)
         for seed, pause in ((1, None), (2, 4))
@@ -59,7 +65,7 @@ async def _flood_then_kill(study: StudyProc, directory: Path) -> list[Participan
         for t in tasks:
             t.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
-    return people
+    return people, reader.record.code
 
 
 async def _ready(base: str, codes: list[str], timeout: float = 90) -> list[dict]:
@@ -79,10 +85,10 @@ async def _ready(base: str, codes: list[str], timeout: float = 90) -> list[dict]
 
 def test_kill_9_of_the_study_loses_no_acknowledged_press_and_resumes_everyone(tmp_path):
     directory = tmp_path / "study"
-    args = study_args(directory, 2, {"tetris": TETRIS})
+    args = study_args(directory, 3, {"tetris": TETRIS})
     study = StudyProc(args, tmp_path / "first.log")
     try:
-        people = asyncio.run(_flood_then_kill(study, directory))
+        people, reading = asyncio.run(_flood_then_kill(study, directory))
     finally:
         study.kill()
     codes = [p.record.code for p in people]
@@ -97,6 +103,7 @@ def test_kill_9_of_the_study_loses_no_acknowledged_press_and_resumes_everyone(tm
     try:
         states = asyncio.run(_ready(again.base, codes))
         assert [s["step"] for s in states] == ["teaching", "teaching"]
+        assert json.loads(layout.participant_json(directory, reading).read_text())["step"] == "instructions"
         assert all(s["teaching"]["ready"] for s in states), again.log.read_text()[-3000:]
         starts = [e for e in layout.read_events(directory) if e["event"] == "worker_start"]
         assert sorted(e["code"] for e in starts if e["resume"]) == sorted(codes)
