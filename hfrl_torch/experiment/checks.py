@@ -40,6 +40,7 @@ from hfrl_torch.fusion.schemes import FUSIONS
 from hfrl_torch.fusion.weights import UNWEIGHTED, check_weight
 from hfrl_torch.interactive.live import KEY_NAMES
 from hfrl_torch.interactive.messages import MAX_SPEED, MIN_SPEED
+from hfrl_torch.interactive.timeline import MAX_REACTION_S, MIN_REACTION_S
 from hfrl_torch.models.tile_coding import MAX_SIZE
 from hfrl_torch.trainers.departure import LEAVE_UNITS
 from hfrl_torch.trainers.reference_oracle import right_actions
@@ -323,6 +324,8 @@ def check_interactive(cfg: DictConfig) -> None:
         require_float(cfg, "trainer.actions_per_s", MIN_SPEED, MAX_SPEED)
     require_float(cfg, "trainer.wait_for_page_s", 0.0)
     require_float(cfg, "trainer.reconnect_wait_s", 0.0)
+    if OmegaConf.select(cfg, "trainer.reaction_s") is not None:  # runs saved before it existed: 0.3
+        require_float(cfg, "trainer.reaction_s", MIN_REACTION_S, MAX_REACTION_S)
     require_int(cfg, "trainer.max_message_bytes", 64, 65536)
     require_float(cfg, "trainer.max_messages_per_s", 1.0, 1000.0)
     teachers = require_int(cfg, "trainer.max_teachers", 1, 64)

@@ -32,6 +32,8 @@ RESUMABLE = (
     "domain.kernels",
     "agent.kernels",
     "logger.backend",
+    "trainer.port",  # where the page is served, and its token, do not change what the run learns
+    "trainer.token",
 )
 GROUPS = ("domain", "agent", "fusion", "human", "trainer", "logger")
 

@@ -47,6 +47,7 @@ from hfrl_torch.interactive.live import DEFAULT_SPEED, KEY_NAMES, LiveTeaching
 from hfrl_torch.interactive.server import TeachingServer
 from hfrl_torch.interactive.session import TeachingSession
 from hfrl_torch.interactive.tetris_live import BrowserTetrisTrainer
+from hfrl_torch.interactive.timeline import REACTION_S
 from hfrl_torch.models.tile_coding import TileCoding, keepaway_tile_widths
 from hfrl_torch.trainers import HumanLikeTiming, OracleTrainer, ReplayTrainer, Trainer, ValueProxyTrainer
 from hfrl_torch.trainers.departure import Departure
@@ -303,7 +304,12 @@ def make_live_teaching(
     The page says what sets ``fusion``'s weight in its own words."""
     t = cfg.trainer
     speed = DEFAULT_SPEED[view] if t.actions_per_s is None else float(t.actions_per_s)
-    session = TeachingSession(actions_per_s=speed, reconnect_s=float(t.reconnect_wait_s))
+    reaction = OmegaConf.select(t, "reaction_s", default=None)  # runs saved before it existed: REACTION_S
+    session = TeachingSession(
+        actions_per_s=speed,
+        reconnect_s=float(t.reconnect_wait_s),
+        reaction_s=REACTION_S if reaction is None else float(reaction),
+    )
     session.set_live(False)  # nothing to judge until the learner shows its game (start-up takes seconds)
     session.info = {
         "weight_name": WEIGHT_NAME,

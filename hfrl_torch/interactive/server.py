@@ -29,21 +29,24 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import ipaddress
 import logging
 import re
 import secrets
-import socket
 import threading
 import time
-from collections import Counter, deque
-from collections.abc import Awaitable, Callable, Iterable
+from collections import deque
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
 from aiohttp import WSCloseCode, WSMessage, WSMsgType, web
 
 from hfrl_torch.feedback.events import FeedbackQueueClosedError, FeedbackQueueFullError
+from hfrl_torch.interactive.http_guard import (
+    GuardedServer,
+    is_loopback,
+    split_authority,
+)
 from hfrl_torch.interactive.messages import Feedback, MessageError, RateLimiter, parse_message, shown
 from hfrl_torch.interactive.session import NotTaken, TeachingSession
 
@@ -57,131 +60,7 @@ CLOSE_TIMEOUT_S = 0.5  # how long closing a page waits for its answer
 STOP_TIMEOUT_S = 3.0
 
 
-def is_loopback(host: str) -> bool:
-    """Whether ``host`` is a loopback address or ``localhost``."""
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
-
-
-def is_wildcard(host: str) -> bool:
-    """Whether binding ``host`` listens on every address of the machine."""
-    return host in ("", "0.0.0.0", "::")
-
-
-# on every response: no other site may frame the page (a framed page is served from here, so its WebSocket
-# passes the Origin check, and a decoy over it could click Good, Bad or Finish and save: clickjacking); no
-# content sniffing; and the token in the page's URL never leaves in a Referer header
-SECURITY_HEADERS = {
-    "X-Frame-Options": "DENY",
-    "Content-Security-Policy": "frame-ancestors 'none'",
-    "X-Content-Type-Options": "nosniff",
-    "Referrer-Policy": "no-referrer",
-}
-
-
-def _is_ip(name: str) -> bool:
-    try:
-        ipaddress.ip_address(name)
-    except ValueError:
-        return False
-    return True
-
-
-def split_authority(value: str, default_port: int = 80) -> tuple[str, int] | None:
-    """``(host, port)`` of a Host header or an origin's ``host[:port]`` (host lower-case, IPv6 without
-    brackets); None if it is malformed."""
-    value = value.strip().lower()
-    if not value or not value.isascii() or any(c in value for c in "/?#@ \t\\"):
-        return None
-    if value.startswith("["):
-        end = value.find("]")
-        name, rest = value[1:end], value[end + 1 :]
-        if end < 0 or not _is_ip(name):
-            return None
-    else:
-        name, sep, port = value.rpartition(":")
-        name, rest = (name, f":{port}") if sep else (value, "")
-        if not name or ":" in name:
-            return None
-    if not rest:
-        return name, default_port
-    digits = rest[1:]
-    if not (rest.startswith(":") and digits.isdigit() and 1 <= len(digits) <= 5 and int(digits) <= 65535):
-        return None
-    return name, int(digits)
-
-
-class RejectionLog:
-    """Counts what was refused, by kind, and logs it as one line per ``interval`` seconds at most."""
-
-    def __init__(self, interval: float = 10.0, clock: Callable[[], float] = time.monotonic) -> None:
-        self.interval = interval
-        self.clock = clock
-        self.counts: Counter[str] = Counter()
-        self.examples: dict[str, str] = {}
-        self.total = 0
-        self.lines = 0
-        self._since = clock()
-
-    def add(self, kind: str, why: str) -> None:
-        """Count one refusal of ``kind``; the first ``why`` of each kind is kept as its example."""
-        self.counts[kind] += 1
-        self.examples.setdefault(kind, why if len(why) <= 160 else why[:157] + "...")
-        self.total += 1
-
-    def flush(self) -> str | None:
-        """Log (one warning) and forget what was counted since the last flush; returns the line."""
-        now = self.clock()
-        if not self.counts:
-            self._since = now
-            return None
-        n = sum(self.counts.values())
-        parts = [f"{c} {kind} (e.g. {self.examples[kind]})" for kind, c in self.counts.most_common()]
-        line = f"refused {n} requests or messages from pages in {now - self._since:.1f} s: " + "; ".join(
-            parts
-        )
-        LOG.warning("%s", line)
-        self.counts.clear()
-        self.examples.clear()
-        self.lines += 1
-        self._since = now
-        return line
-
-
-class _CountingLogger(logging.Logger):
-    """aiohttp's server logger: what it would log (malformed requests, mostly) is counted instead."""
-
-    def __init__(self, server: TeachingServer) -> None:
-        super().__init__("hfrl_torch.interactive.http")
-        self.server = server
-
-    def _log(self, level: int, msg: object, args: Any, exc_info: Any = None, **kwargs: Any) -> None:
-        text = str(msg) % args if args else str(msg)
-        error = exc_info[1] if isinstance(exc_info, tuple) else exc_info
-        if isinstance(error, BaseException):
-            text += f": {type(error).__name__}: {' '.join(str(error).split())}"
-        if text.startswith("Unhandled exception"):
-            self.server._unhandled(error if isinstance(error, BaseException) else RuntimeError(text))
-        else:
-            self.server.rejections.add("bad HTTP request", text)
-
-
-class _Refused(asyncio.Protocol):
-    """A connection past the cap: answered 503 and closed (its file handle is free again at once)."""
-
-    def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        body = b"too many connections to the training run's page; try again shortly"
-        head = f"HTTP/1.1 503 Service Unavailable\r\nContent-Length: {len(body)}\r\nConnection: close\r\n\r\n"
-        assert isinstance(transport, asyncio.WriteTransport)
-        transport.write(head.encode() + body)
-        transport.close()
-
-
-class TeachingServer:
+class TeachingServer(GuardedServer):
     """Serves the page and relays between it and a :class:`TeachingSession`.
 
     :param session: the shared state with the training loop.
@@ -234,15 +113,19 @@ class TeachingServer:
                 f"TeachingServer needs max_http_connections >= max_connections, got {max_http_connections} "
                 f"and {max_connections}"
             )
-        if not idle_timeout_s > 0:
-            raise ValueError(f"TeachingServer idle_timeout_s must be > 0, got {idle_timeout_s!r}")
-        if not rejection_log_s > 0:
-            raise ValueError(f"TeachingServer rejection_log_s must be > 0, got {rejection_log_s!r}")
         if token is None and not is_loopback(host):
             token = secrets.token_urlsafe(16)
+        super().__init__(
+            host,
+            port,
+            allowed_hosts,
+            max_http_connections,
+            idle_timeout_s,
+            rejection_log_s,
+            what="browser trainer server",
+            log=LOG,
+        )
         self.session = session
-        self.host = host
-        self.port = port
         self.token = token
         self.keys = {"good": "/", "bad": "z", "pause": "p", "presence": "h", **(keys or {})}
         self.view = view
@@ -250,12 +133,7 @@ class TeachingServer:
         self.max_messages_per_s = max_messages_per_s
         self.max_teachers = max_teachers
         self.max_connections = max_connections
-        self.max_http_connections = max_http_connections
-        self.idle_timeout_s = float(idle_timeout_s)
-        self.allowed_hosts = {h.strip().lower().strip("[]") for h in allowed_hosts}
         self.clock = clock
-        self.rejections = RejectionLog(rejection_log_s)
-        self.errors = 0  # exceptions caught that a page's input caused (a bug if ever > 0)
         self._limiter = RateLimiter(max_messages_per_s, int(2 * max_messages_per_s))
         self._teachers: list[web.WebSocketResponse] = []
         self._sent: dict[web.WebSocketResponse, deque[tuple[float, int]]] = {}  # (wall, frame version)
@@ -267,10 +145,7 @@ class TeachingServer:
         self._tabs: dict[web.WebSocketResponse, str] = {}  # each page's tab name ("": none given)
         self._held: dict[str, asyncio.TimerHandle] = {}  # teaching places kept for a reloading tab
         self.hold_s = session.reconnect_s if hold_s is None else float(hold_s)
-        self._hosts: set[str] = set()
         self._loop: asyncio.AbstractEventLoop | None = None
-        self._runner: web.AppRunner | None = None
-        self._listener: asyncio.Server | None = None
         self._thread: threading.Thread | None = None
         self._started = threading.Event()
         self._error: BaseException | None = None
@@ -294,20 +169,6 @@ class TeachingServer:
 
     # --- who may connect ---
 
-    def _names(self) -> set[str]:
-        names = {self.host.lower().strip("[]"), *self.allowed_hosts}
-        if is_loopback(self.host):
-            names.add("localhost")
-        if is_wildcard(self.host):
-            names |= {"localhost", socket.gethostname().lower(), socket.getfqdn().lower()}
-        return names
-
-    def _host_ok(self, where: tuple[str, int] | None) -> bool:
-        if where is None or where[1] != self.port:
-            return False
-        name = where[0]
-        return name in self._hosts or (is_wildcard(self.host) and _is_ip(name))
-
     def _token_ok(self, request: web.Request) -> bool:
         if self.token is None:
             return True
@@ -325,15 +186,9 @@ class TeachingServer:
 
     def _refusal(self, request: web.Request) -> web.Response | None:
         """The answer to a request that may not be served (None: it may)."""
-        host = request.headers.get("Host")
-        where = split_authority(host) if host is not None else None
-        if not self._host_ok(where):
-            allowed = (
-                f"{self.host}:{self.port}" if not is_wildcard(self.host) else f"<this machine>:{self.port}"
-            )
-            return self._refuse(
-                400, "bad Host", f"Host header {shown(host)} does not name this server; allowed: {allowed}"
-            )
+        refusal, where = self._host_refusal(request)
+        if refusal is not None:
+            return refusal
         if request.path in ("/", "/ws") and not self._token_ok(request):
             return self._refuse(
                 403, "bad token", "access token missing or wrong: use the URL train.py printed"
@@ -346,25 +201,6 @@ class TeachingServer:
                 f"here may connect",
             )
         return None
-
-    def _refuse(self, status: int, kind: str, why: str) -> web.Response:
-        self.rejections.add(kind, why)
-        return web.Response(status=status, text=why)
-
-    @web.middleware
-    async def _guard(
-        self, request: web.Request, handler: Callable[[web.Request], Awaitable[web.StreamResponse]]
-    ) -> web.StreamResponse:
-        refusal = self._refusal(request)
-        if refusal is not None:
-            return refusal
-        try:
-            return await handler(request)
-        except web.HTTPException:
-            raise
-        except Exception as e:
-            self._unhandled(e)
-            return web.Response(status=500, text="internal error")
 
     # --- pages ---
 
@@ -508,12 +344,6 @@ class TeachingServer:
         self.rejections.add(kind, why)
         await self._send(ws, {"type": "error", "message": why, **extra})
 
-    def _unhandled(self, error: BaseException | None) -> None:
-        self.errors += 1
-        self.rejections.add("internal error", repr(error))
-        if self.errors == 1:
-            LOG.error("browser trainer server: unexpected error", exc_info=error)
-
     @staticmethod
     async def _send(ws: web.WebSocketResponse, obj: dict[str, Any]) -> bool:
         """Send ``obj``; False (and nothing raised) if the page has gone."""
@@ -547,20 +377,10 @@ class TeachingServer:
                     return
             await asyncio.sleep(FRAME_POLL_S)
 
-    async def _log_rejections(self) -> None:
-        while True:
-            await asyncio.sleep(self.rejections.interval)
-            self.rejections.flush()
-
     # --- running ---
 
-    @staticmethod
-    async def _secure_headers(request: web.Request, response: web.StreamResponse) -> None:
-        response.headers.update(SECURITY_HEADERS)
-
     def _app(self) -> web.Application:
-        app = web.Application(middlewares=[self._guard])
-        app.on_response_prepare.append(self._secure_headers)
+        app = self._guarded_app()
         app.router.add_get("/", self._index)
         app.router.add_get("/ws", self._ws)
         app.router.add_get("/static/{name}", self._static)
@@ -574,21 +394,6 @@ class TeachingServer:
             return web.Response(status=404, text="not found")
         return web.FileResponse(STATIC / name)
 
-    def _protocol(self) -> asyncio.BaseProtocol:
-        """aiohttp's handler for a new connection, or, past ``max_http_connections``, a 503 and a close."""
-        assert self._runner is not None and self._runner.server is not None
-        server = self._runner.server
-        if len(server.connections) >= self.max_http_connections:
-            self.rejections.add(
-                "too many connections",
-                f"{len(server.connections)} open; allowed: {self.max_http_connections}",
-            )
-            return _Refused()
-        return server()
-
-    def _loop_error(self, loop: asyncio.AbstractEventLoop, context: dict[str, Any]) -> None:
-        self._unhandled(context.get("exception") or RuntimeError(str(context.get("message"))))
-
     def _serve(self) -> None:
         loop = asyncio.new_event_loop()
         self._loop = loop
@@ -596,19 +401,7 @@ class TeachingServer:
         loop.set_exception_handler(self._loop_error)
 
         async def start() -> None:
-            self._runner = web.AppRunner(
-                self._app(),
-                access_log=None,
-                shutdown_timeout=CLOSE_TIMEOUT_S,
-                logger=_CountingLogger(self),
-                keepalive_timeout=self.idle_timeout_s,
-            )
-            await self._runner.setup()
-            self._listener = await loop.create_server(
-                self._protocol, self.host, self.port, reuse_address=True
-            )
-            self.port = int(self._listener.sockets[0].getsockname()[1])
-            self._hosts = self._names()
+            await self._listen(self._app(), CLOSE_TIMEOUT_S)
 
         try:
             loop.run_until_complete(start())
@@ -620,10 +413,7 @@ class TeachingServer:
         self._started.set()
         loop.run_forever()
         flusher.cancel()
-        if self._listener is not None:
-            self._listener.close()
-        if self._runner is not None:
-            loop.run_until_complete(self._runner.cleanup())
+        loop.run_until_complete(self._close_listener())
         pending = [t for t in asyncio.all_tasks(loop) if not t.done()]
         for task in pending:
             task.cancel()
@@ -648,11 +438,7 @@ class TeachingServer:
             *(ws.close(code=WSCloseCode.GOING_AWAY, message=b"the training run stopped") for ws in pages),
             return_exceptions=True,
         )
-        if self._listener is not None:
-            self._listener.close()
-        if self._runner is not None:
-            runner, self._runner = self._runner, None
-            await runner.cleanup()
+        await self._close_listener()
 
     def start(self) -> str:
         """Start serving in a daemon thread; returns the URL. Raises OSError if the address is unusable."""

@@ -20,9 +20,10 @@ from hfrl_torch.interactive.timeline import REACTION_S, credit_time
 from hfrl_torch.trainers.base import Events
 from hfrl_torch.trainers.queue_trainer import QueueTrainer
 
-# how long a live game waits after its last placement for feedback on it: the reaction allowance plus a
-# slow reaction (1 s)
-LATE_FEEDBACK_S = REACTION_S + 1.0
+# how long a live game waits after its last placement for feedback on it: the session's reaction allowance
+# plus a slow reaction (1 s); LATE_FEEDBACK_S at the default allowance
+SLOW_REACTION_S = 1.0
+LATE_FEEDBACK_S = REACTION_S + SLOW_REACTION_S
 
 
 def landing(before: torch.Tensor, piece: int, action: int, table: PlacementTable) -> list[list[int]]:

@@ -17,6 +17,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 
 REACTION_S = 0.3
+MIN_REACTION_S, MAX_REACTION_S = 0.05, 2.0  # trainer.reaction_s may be set within these (a calibration)
 
 
 @dataclass(frozen=True)

@@ -66,7 +66,7 @@ from hfrl_torch.experiment.run import Learner, Point
 from hfrl_torch.feedback.log import FeedbackLog
 from hfrl_torch.fusion.transform import FeedbackFusion, FusionModule
 from hfrl_torch.interactive.live import LiveTeaching
-from hfrl_torch.interactive.tetris_live import LATE_FEEDBACK_S, BrowserTetrisTrainer, TetrisPage
+from hfrl_torch.interactive.tetris_live import SLOW_REACTION_S, BrowserTetrisTrainer, TetrisPage
 
 
 class CEMLearner(Learner):
@@ -332,7 +332,7 @@ class CEMLearner(Learner):
                 break
             td = td["next"]
         if live is not None and totals["placements"] > 0:  # feedback on the last placements is on its way
-            live.sleep(LATE_FEEDBACK_S)  # (cut short when the run is ending)
+            live.sleep(self.teaching.session.reaction_s + SLOW_REACTION_S)  # (cut short when the run ends)
             late = self.teaching.trainer.late(live.clock())
             self.channel.put_events(late)
             self._count(totals, late)

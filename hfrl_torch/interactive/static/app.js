@@ -10,7 +10,15 @@ const tab = sessionStorage.getItem("hfrl-tab") ||
   Array.from(crypto.getRandomValues(new Uint8Array(12)), (b) => b.toString(16).padStart(2, "0")).join("");
 sessionStorage.setItem("hfrl-tab", tab);
 const wsQuery = new URLSearchParams(token ? { token, tab } : { tab });
-const wsUrl = `${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws?${wsQuery}`;
+// relative to the page, so the same page works at / (train.py) and at /p/<code>/teach/ (a study's proxy)
+const wsUrl = new URL("ws", location.href);
+wsUrl.protocol = location.protocol === "https:" ? "wss:" : "ws:";
+wsUrl.search = wsQuery.toString();
+wsUrl.hash = "";
+// in a study the page sits under the participant's own path: its end offers "Continue" to the study's page
+// instead of the run's paths and commands, and the study's proxy says why it closed (WAIT: try again soon)
+const STUDY = location.pathname.includes("/teach/");
+const WAIT = 4000, OVER = 4001;
 const $ = (id) => document.getElementById(id);
 const S = {
   ws: null, connected: false, everConnected: false, failures: 0, ended: null,
@@ -19,6 +27,7 @@ const S = {
   given: 0, pending: new Map(), nextId: 0, curve: [], frame: null, reaction: 0.3, reconnect: 0, clearTimer: null,
   asked: {},
   refusedHere: new Map(),  // presses this page did not send, by reason (since it was opened)
+  closeReason: "",  // in a study: why the study's proxy closed the connection, in the participant's words
 };
 
 function send(obj) {
@@ -61,6 +70,7 @@ function leftText() {
 function statusText() {
   if (S.ended) return "The session has ended: see the summary below.";
   if (!S.connected) {
+    if (STUDY && S.closeReason) return S.closeReason;
     if (!S.everConnected) return "Connecting to the run...";
     // one reconnection refused: on this machine that means the run's process is gone, not a network blip
     return S.failures > 1
@@ -82,7 +92,10 @@ function statusText() {
 
 function coverText() {
   if (S.ended) return "The session has ended.";
-  if (!S.connected) return S.everConnected ? "Not connected to the run." : "Connecting...";
+  if (!S.connected) {
+    if (STUDY && S.closeReason) return S.closeReason;
+    return S.everConnected ? "Not connected to the run." : "Connecting...";
+  }
   if (S.ending) return S.ending === "finishing" ? "Finishing and saving..." : "The run is stopping...";
   if (!S.here) return `You're away. The agent practises on its own: ${leftText()}. Press I'm here (${S.keys.presence}) to teach again before then.`;
   if (!S.live && !S.frame) return "Starting the run...";
@@ -389,6 +402,8 @@ function showSummary(m) {
     const li = document.createElement("li"); li.textContent = `${k}: ${v}`; saved.appendChild(li);
   });
   $("summary-resume").textContent = m.resume || "";
+  $("summary-run").hidden = STUDY;
+  $("summary-continue").hidden = !STUDY;
   $("summary-keep").textContent = "The run has stopped serving this page: reloading it or opening it again " +
     "will not show this summary. " + (m.summary_file ? "It is saved in the file above; " : "") +
     "Download saves a copy from here.";
@@ -449,14 +464,27 @@ function onMessage(ev) {
   else if (m.type === "end") showSummary(m);
 }
 
+// in a study: this participant's teaching is not (or no longer) here; the study's page goes on
+function studyOver(reason) {
+  S.ended = { reason: "over" };
+  render();
+  $("teach").hidden = true;
+  $("study-over-text").textContent = reason || "The teaching session has ended.";
+  $("study-over").hidden = false;
+}
+
 function connect() {
   const ws = new WebSocket(wsUrl);
   S.ws = ws;
-  ws.onopen = () => { S.connected = true; S.everConnected = true; S.failures = 0; render(); };
-  ws.onmessage = onMessage;
-  ws.onclose = () => {
+  const opened = () => { S.connected = true; S.everConnected = true; S.failures = 0; S.closeReason = ""; render(); };
+  // in a study the socket opens at the study's proxy: the page is connected once the run itself speaks
+  ws.onopen = () => { if (!STUDY) opened(); };
+  ws.onmessage = (ev) => { if (STUDY && !S.connected && S.ws === ws) opened(); onMessage(ev); };
+  ws.onclose = (ev) => {
     if (S.ws !== ws) return;
     S.connected = false;
+    if (STUDY && !S.ended && ev.code === OVER) { studyOver(ev.reason); return; }
+    if (STUDY) S.closeReason = ev.code === WAIT || ev.code === 1001 ? ev.reason : "";
     S.asked = {};
     if (S.pending.size) {
       lastPress(`${S.pending.size} press${S.pending.size > 1 ? "es" : ""} not confirmed before the connection was lost; the count shows what the run took.`, true);
@@ -503,6 +531,7 @@ speed.addEventListener("change", () => {
   speed.blur();
 });
 speed.addEventListener("pointerup", () => speed.blur());
+if (STUDY) document.body.classList.add("study");  // a study's participant: no weight, which tells the condition
 render();
 drawCurve();
 connect();
