@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import csv
 import itertools
+import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -41,6 +42,7 @@ from hfrl_torch.experiment.aggregate import (
     report_options,
 )
 from hfrl_torch.feedback.log import read_feedback_log
+from hfrl_torch.interactive.journal import JOURNAL_NAME, PressJournalError, read_journal
 from hfrl_torch.study import layout
 
 EXACT_LIMIT = 20_000  # relabellings enumerated exactly up to this many
@@ -206,18 +208,53 @@ def _feedback_counts(run_dir: Path) -> dict[str, object]:
             feedback_bad=sum(v < 0 for v in values),
             feedback_problem=str(contents.error or ""),
         )
-    presses = run_dir / "presses.jsonl"
-    out["presses_journaled"] = len(presses.read_bytes().splitlines()) if presses.exists() else ""
+    presses = run_dir / JOURNAL_NAME
+    out["presses_journaled"] = ""
+    if presses.exists():
+        try:
+            out["presses_journaled"] = len(read_journal(presses))
+        except PressJournalError as exc:
+            out["feedback_problem"] = f"{out['feedback_problem']} {exc}".strip()
     return out
+
+
+def read_object(path: Path) -> dict:
+    """The JSON object in ``path``; one-line ``UserError`` naming the file if it is unreadable or not one."""
+    try:
+        data = layout.read_json(path)
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise UserError(f"{path} is corrupt or unreadable: {str(exc).splitlines()[0]}") from exc
+    if not isinstance(data, dict):
+        raise UserError(f"{path} is corrupt: it holds a {type(data).__name__}, not a JSON object")
+    return data
+
+
+def read_records(study_dir: Path) -> list[tuple[Path, dict]]:
+    """Every participant's directory and record, in enrolment order, each record checked for the fields the
+    report reads."""
+    out = []
+    for code in layout.participant_codes(study_dir):
+        path = layout.participant_json(study_dir, code)
+        record = read_object(path)
+        for key in ("code", "step"):
+            if not isinstance(record.get(key), str):
+                raise UserError(f"{path} is corrupt: {key!r} is {record.get(key)!r}, must be a string")
+        if record.get("condition") is not None and not isinstance(record["condition"], str):
+            raise UserError(f"{path} is corrupt: 'condition' is {record['condition']!r}, must be a label")
+        if not isinstance(record.get("index"), int) or isinstance(record.get("index"), bool):
+            raise UserError(f"{path} is corrupt: 'index' is {record.get('index')!r}, must be an integer")
+        out.append((path.parent, record))
+    return sorted(out, key=lambda pair: pair[1]["index"])
 
 
 def read_study_participants(study_dir: Path) -> list[Participant]:
     """Every enrolled participant; those who reached teaching and have metrics get their run."""
     out = []
-    for record in layout.read_participants(study_dir):
-        p = Participant(record, study_dir / layout.PARTICIPANTS_DIR / str(record["code"]))
+    for home, record in read_records(study_dir):
+        p = Participant(record, home)
         reached = _reached(record)
-        run_dir = layout.run_dir(study_dir, record)
+        rel = record.get("run_dir")
+        run_dir = study_dir / rel if isinstance(rel, str) else layout.run_dir(study_dir, str(record["code"]))
         if record["step"] == layout.DECLINED:
             p.excluded = "declined"
         elif "teaching" not in reached:
@@ -352,14 +389,17 @@ def compare(
         "(95 % interval) | p (unpaired permutation) | Holm p | effect size (d, pooled sd) |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
+    rows_of = {id(g): row for g, row in shown}
     for g in groups:
         if not g.members:
             md.append(f"| {g.label} | 0 | (no participant analysed) | | | | | | |")
-        elif not g.y_key:
+            continue
+        if not g.y_key:
             md.append(
                 f"| {g.named} | {len(g.members)} | (no known learning curve in metrics.jsonl) | | | | | | |"
             )
-    for g, row in shown:
+            continue
+        row = rows_of[id(g)]
         count = f"{row['participants']}" + (f" of {len(g.members)}" if g.left_out else "")
         mark = " (reference)" if g is refs[g.label] else ""
         if "mean" not in row:
@@ -569,7 +609,7 @@ def _answers(p: Participant, items: list[dict]) -> dict[str, object]:
     answers = p.record.get("answers")
     if answers is None:
         return {}
-    where = p.path / layout.PARTICIPANT_FILE
+    where = p.path / layout.PARTICIPANT_JSON
     if not isinstance(answers, dict):
         raise UserError(f"{where} is corrupt: 'answers' must be an object or null")
     for item in items:
@@ -700,6 +740,7 @@ def participant_rows(
             "step": p.record["step"],
             "steps_reached": " ".join(_reached(p.record)),
             "ended": p.record.get("ended") or "",
+            "stopped": p.record.get("stopped") is True,
             "analysed": p.run is not None,
             "excluded": p.excluded,
             "learners": p.learners or "",
@@ -717,6 +758,10 @@ def participant_rows(
     return out
 
 
+def _step_order(step: str) -> int:
+    return layout.STEPS.index(step) if step in layout.STEPS else len(layout.STEPS)
+
+
 def _header(name: str, participants: list[Participant]) -> list[str]:
     """The title and who took part: simulated and people, declined, stopped before teaching (by step)."""
     analysed = [p for p in participants if p.run is not None]
@@ -731,10 +776,8 @@ def _header(name: str, participants: list[Participant]) -> list[str]:
     else:
         title = f"# Study {name}: results"
     declined = sum(p.excluded == "declined" for p in participants)
-    before: dict[str, int] = {}
-    for p in participants:
-        if p.excluded.startswith("never reached teaching"):
-            before[str(p.record["step"])] = before.get(str(p.record["step"]), 0) + 1
+    stopped = [str(p.record["step"]) for p in participants if p.excluded.startswith("never reached teaching")]
+    before = {step: stopped.count(step) for step in sorted(set(stopped), key=_step_order)}
     other = [
         f"{p.code} ({p.excluded})"
         for p in participants
@@ -777,8 +820,8 @@ def aggregate_study(cfg: DictConfig, study_dir: Path) -> dict[str, object]:
     """``evaluate.py runs=<study dir>``: read the participants, compare the conditions between subjects,
     summarise the questionnaire, write the CSVs, markdown and plots; print the markdown."""
     last, window, reach = report_options(cfg)
-    study = layout.read_study(study_dir)
-    items = _items(study, study_dir / layout.STUDY_FILE)
+    study = read_object(study_dir / layout.STUDY_JSON)
+    items = _items(study, study_dir / layout.STUDY_JSON)
     participants = read_study_participants(study_dir)
     conditions = study.get("conditions") or []
     order = [str(c["label"]) for c in conditions if isinstance(c, dict) and "label" in c]
@@ -831,7 +874,7 @@ def aggregate_study(cfg: DictConfig, study_dir: Path) -> dict[str, object]:
             f"| {'yes' if r['analysed'] else 'no: ' + str(r['excluded'])} | {shown} |"
         )
     text_md = "\n".join(md)
-    out = Path(str(cfg.out)) if cfg.get("out") else study_dir / layout.RESULTS_DIR
+    out = Path(str(cfg.out)) if cfg.get("out") else study_dir / layout.RESULTS
     out.mkdir(parents=True, exist_ok=True)
     _write_csv(out / "summary.csv", rows, ["condition"])
     _write_csv(out / "per_participant.csv", people, ["code", "index", "condition", "simulated"])
@@ -868,7 +911,7 @@ def study_dir_of(cfg: DictConfig) -> Path | None:
     a study with other directories is refused (one study is reported alone)."""
     raw = cfg.runs
     dirs = [Path(str(d)) for d in (raw if OmegaConf.is_list(raw) else [raw])]
-    studies = [d for d in dirs if layout.is_study_dir(d)]
+    studies = [d for d in dirs if layout.is_study(d)]
     if not studies:
         return None
     if len(dirs) > 1:

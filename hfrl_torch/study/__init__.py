@@ -1,1 +1,5 @@
-"""Study mode: many participants teach over the web, each in their own ``train.py`` run (issue 44)."""
+"""Study mode: many people teach agents over the web, one ``train.py`` run each (``study.py``).
+
+``layout`` (the study directory's files) imports only the standard library, so that ``evaluate.py`` can
+read a study.
+"""

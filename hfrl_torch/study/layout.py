@@ -1,69 +1,62 @@
-"""The study directory's names and the readers ``evaluate.py runs=<study dir>`` needs (docs/study.md).
+"""The study directory on disk: the names and readers ``evaluate.py runs=<study dir>`` needs.
 
-EVAL's minimal copy, written to the spec's on-disk contract; the integrator merges it with the study
-core's layout.py, which owns every name::
+EVAL's subset of the study core's layout.py (branch ``study``): the same names and functions, copied as
+they are there, plus ``RESULTS``, where evaluate.py writes a study's report. The layout::
 
-    <dir>/study.json                               the resolved study config
-    <dir>/participants/<code>/participant.json     one participant's record
-    <dir>/participants/<code>/run/                 their train.py run directory
+    <dir>/study.json                 the resolved study config
+    <dir>/participants/<code>/participant.json
+    <dir>/participants/<code>/run/   the participant's train.py run directory
+    <dir>/results/                   evaluate.py runs=<dir>: the report (summary.md, CSVs, plots)
 """
 
 from __future__ import annotations
 
 import json
+import os
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
-from hfrl_torch.common.errors import UserError
+STUDY_JSON = "study.json"
+PARTICIPANTS = "participants"
+PARTICIPANT_JSON = "participant.json"
+RUN = "run"
+RESULTS = "results"  # EVAL's addition: evaluate.py's default ``out`` for a study
 
-STUDY_FILE = "study.json"
-PARTICIPANTS_DIR = "participants"
-PARTICIPANT_FILE = "participant.json"
-RUN_DIR = "run"
 STEPS = ("consent", "instructions", "practice", "calibration", "teaching", "questionnaire", "done")
 DECLINED = "declined"
-RESULTS_DIR = "results"  # where evaluate.py runs=<study dir> writes its report by default
 
 
-def is_study_dir(path: str | Path) -> bool:
-    """Whether ``path`` holds a study (its ``study.json``), not run or multirun directories."""
-    return (Path(path) / STUDY_FILE).is_file()
+def is_study(directory: str | os.PathLike[str]) -> bool:
+    """Whether ``directory`` holds a study (its ``study.json``)."""
+    return (Path(directory) / STUDY_JSON).is_file()
 
 
-def _read_json(path: Path) -> dict:
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise UserError(f"{path} is corrupt or unreadable: {str(exc).splitlines()[0]}") from exc
-    if not isinstance(data, dict):
-        raise UserError(f"{path} is corrupt: it holds a {type(data).__name__}, not a JSON object")
-    return data
+def participant_dir(directory: str | os.PathLike[str], code: str) -> Path:
+    """``<dir>/participants/<code>``."""
+    return Path(directory) / PARTICIPANTS / code
 
 
-def read_study(study_dir: str | Path) -> dict:
-    """The study's resolved config (``study.json``); one-line ``UserError`` naming the file if corrupt."""
-    return _read_json(Path(study_dir) / STUDY_FILE)
+def participant_json(directory: str | os.PathLike[str], code: str) -> Path:
+    """``<dir>/participants/<code>/participant.json``."""
+    return participant_dir(directory, code) / PARTICIPANT_JSON
 
 
-def read_participants(study_dir: str | Path) -> list[dict]:
-    """Every participant's record, in enrolment order; one-line ``UserError`` naming a corrupt file."""
-    root = Path(study_dir) / PARTICIPANTS_DIR
+def run_dir(directory: str | os.PathLike[str], code: str) -> Path:
+    """The participant's train.py run directory."""
+    return participant_dir(directory, code) / RUN
+
+
+def read_json(path: str | os.PathLike[str]) -> Any:
+    """The JSON value in ``path``."""
+    return json.loads(Path(path).read_text())
+
+
+def participant_codes(directory: str | os.PathLike[str]) -> Iterator[str]:
+    """The codes of every participant with a ``participant.json``."""
+    root = Path(directory) / PARTICIPANTS
     if not root.is_dir():
-        return []
-    out = []
-    for path in sorted(root.glob(f"*/{PARTICIPANT_FILE}")):
-        record = _read_json(path)
-        for key in ("code", "step"):
-            if not isinstance(record.get(key), str):
-                raise UserError(f"{path} is corrupt: {key!r} is {record.get(key)!r}, must be a string")
-        if record.get("condition") is not None and not isinstance(record["condition"], str):
-            raise UserError(f"{path} is corrupt: 'condition' is {record['condition']!r}, must be a label")
-        if not isinstance(record.get("index"), int) or isinstance(record.get("index"), bool):
-            raise UserError(f"{path} is corrupt: 'index' is {record.get('index')!r}, must be an integer")
-        out.append(record)
-    return sorted(out, key=lambda r: r["index"])
-
-
-def run_dir(study_dir: str | Path, record: dict) -> Path:
-    """A participant's run directory: ``run_dir`` of their record (relative to the study) or the default."""
-    rel = record.get("run_dir") or f"{PARTICIPANTS_DIR}/{record['code']}/{RUN_DIR}"
-    return Path(study_dir) / rel
+        return
+    for child in sorted(root.iterdir()):
+        if (child / PARTICIPANT_JSON).is_file():
+            yield child.name

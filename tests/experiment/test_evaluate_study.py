@@ -15,6 +15,9 @@ from script_runner import run_script
 
 from hfrl_torch.common.errors import ConfigError, UserError
 from hfrl_torch.experiment import study_report
+from hfrl_torch.experiment.cli import compose_train
+from hfrl_torch.experiment.learners.tetris_cem import CEMLearner
+from hfrl_torch.experiment.run import RunFiles, learn
 from hfrl_torch.experiment.study_report import (
     EXACT_LIMIT,
     aggregate_study,
@@ -72,35 +75,46 @@ def _record(code: str, index: int) -> dict:
         "simulated": simulated,
         "calibration": None,
         "answers": answers,
-        "run_dir": f"{layout.PARTICIPANTS_DIR}/{code}/{layout.RUN_DIR}",
+        "run_dir": f"{layout.PARTICIPANTS}/{code}/{layout.RUN}",
         "ended": None,
     }
 
 
 @pytest.fixture(scope="module")
-def study(tmp_path_factory) -> Path:
-    """A study directory whose participants' runs are real tiny train.py runs (Tetris CE + oracle)."""
+def study(tmp_path_factory, one_thread) -> Path:
+    """A study directory whose participants' runs are real tiny runs of train.py's loop (CE + oracle)."""
     root = tmp_path_factory.mktemp("study") / "pilot"
     conditions = [{"label": k, "overrides": v} for k, v in CONDITIONS.items()]
     root.mkdir()
-    (root / layout.STUDY_FILE).write_text(
+    (root / layout.STUDY_JSON).write_text(
         json.dumps({"name": "pilot", "seed": 0, "conditions": conditions, "questionnaire": QUESTIONNAIRE})
     )
     for index, code in enumerate(PARTICIPANTS):
-        home = root / layout.PARTICIPANTS_DIR / code
+        home = root / layout.PARTICIPANTS / code
         home.mkdir(parents=True)
-        (home / layout.PARTICIPANT_FILE).write_text(json.dumps(_record(code, index)))
+        (home / layout.PARTICIPANT_JSON).write_text(json.dumps(_record(code, index)))
         condition, _, _, iterations, _ = PARTICIPANTS[code]
         if iterations is None:
             continue
-        run = home / layout.RUN_DIR
+        run = home / layout.RUN
         if iterations == 0:
             run.mkdir()
             (run / "config.yaml").write_text("seed: 7\n")
             continue
         over = [*TINY, *CONDITIONS[condition], f"agent.iterations={iterations}", f"seed={index}"]
-        out = run_script("train.py", *over, f"hydra.run.dir={run}", timeout=300)
-        assert out.returncode == 0, out.stderr[-2000:]
+        if code == "AAAA":  # as a study's worker runs it
+            out = run_script("train.py", *over, f"hydra.run.dir={run}", timeout=300)
+            assert out.returncode == 0, out.stderr[-2000:]
+        else:  # train.py's loop in this process, and the config.yaml train.py writes
+            cfg = compose_train(*over)
+            run.mkdir()
+            (run / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+            learn(CEMLearner(cfg, run), RunFiles(run, cfg))
+    journal = root / layout.PARTICIPANTS / "CCCC" / layout.RUN / "presses.jsonl"
+    press = {"wall": 1.7e9, "value": 1.0, "source": "human:browser", "episode": 0, "step": 3, "sim": None}
+    lines = [{"schema": "hfrl_torch.presses", "version": 1, "created": 1.7e9}]
+    lines += [press | {"n": n} for n in range(3)]
+    journal.write_text("".join(json.dumps(x) + "\n" for x in lines))
     return root
 
 
@@ -109,7 +123,7 @@ def reported(study) -> tuple[Path, str, str]:
     """``python evaluate.py runs=<study>`` once: its results directory, stdout and stderr."""
     out = run_script("evaluate.py", f"runs={study}", timeout=300)
     assert out.returncode == 0, out.stderr[-3000:]
-    return study / layout.RESULTS_DIR, out.stdout, out.stderr
+    return study / layout.RESULTS, out.stdout, out.stderr
 
 
 def _csv(path: Path) -> list[dict[str, str]]:
@@ -159,7 +173,7 @@ def test_conditions_are_compared_between_subjects_against_a_hand_computation(rep
     out, stdout, _ = reported
     people = {r["code"]: r for r in _csv(out / "per_participant.csv")}
     for code in ("AAAA", "BBBB", "CCCC", "DDDD", "EEEE"):  # the value compared: each run's last point
-        rows = (study / layout.PARTICIPANTS_DIR / code / "run" / "metrics.jsonl").read_text().splitlines()
+        rows = (study / layout.PARTICIPANTS / code / "run" / "metrics.jsonl").read_text().splitlines()
         last = json.loads(rows[-1])
         assert float(people[code]["value"]) == pytest.approx(last["eval/mean_policy_lines_mean"])
         assert int(people[code]["points"]) == PARTICIPANTS[code][3] == int(float(people[code]["last_x"]))
@@ -234,12 +248,13 @@ def test_feedback_counts_and_final_metrics_per_participant(reported, study):
     out, _, _ = reported
     people = {r["code"]: r for r in _csv(out / "per_participant.csv")}
     for code in ("AAAA", "DDDD"):
-        run = study / layout.PARTICIPANTS_DIR / code / "run"
+        run = study / layout.PARTICIPANTS / code / "run"
         events = load_feedback_log(run / "feedback.jsonl")
         assert int(people[code]["feedback_logged"]) == len(events) > 0
         assert int(people[code]["feedback_good"]) + int(people[code]["feedback_bad"]) == len(events)
         last = json.loads((run / "metrics.jsonl").read_text().splitlines()[-1])
         assert float(people[code]["final:feedback/learned_total"]) == last["feedback/learned_total"]
+    assert people["CCCC"]["presses_journaled"] == "3" and people["AAAA"]["presses_journaled"] == ""
     assert (out / "curves.png").stat().st_size > 1000 and (out / "effort.png").stat().st_size > 1000
     assert list((out / "tensorboard").glob("events.out.tfevents.*"))
 
@@ -290,7 +305,7 @@ def test_window_leaves_out_participants_who_ended_before_it_and_last_averages_th
         OmegaConf.create({"runs": str(study), "last": 2, "out": str(tmp_path / "l")}), study
     )
     people = {r["code"]: r for r in _csv(Path(result["per_participant_csv"]))}
-    rows = (study / layout.PARTICIPANTS_DIR / "AAAA" / "run" / "metrics.jsonl").read_text().splitlines()
+    rows = (study / layout.PARTICIPANTS / "AAAA" / "run" / "metrics.jsonl").read_text().splitlines()
     tail = [json.loads(r)["eval/mean_policy_lines_mean"] for r in rows[-2:]]
     assert float(people["AAAA"]["value"]) == pytest.approx(sum(tail) / 2)
     assert "each run's last 2" in Path(result["summary_md"]).read_text()
@@ -299,7 +314,7 @@ def test_window_leaves_out_participants_who_ended_before_it_and_last_averages_th
 def test_bad_study_input_fails_with_one_line_naming_the_file(study, tmp_path):
     broken = tmp_path / "broken"
     shutil.copytree(study, broken, ignore=shutil.ignore_patterns("results"))
-    bad = broken / layout.PARTICIPANTS_DIR / "BBBB" / layout.PARTICIPANT_FILE
+    bad = broken / layout.PARTICIPANTS / "BBBB" / layout.PARTICIPANT_JSON
     bad.write_text('{"code": "BBBB", "index": ')
     out = run_script("evaluate.py", f"runs={broken}", timeout=300)
     assert out.returncode == 2 and len(out.stderr.strip().splitlines()) == 1
@@ -316,3 +331,58 @@ def test_bad_study_input_fails_with_one_line_naming_the_file(study, tmp_path):
         aggregate_study(
             OmegaConf.create({"runs": str(study), "baseline": "nothing", "out": str(tmp_path)}), study
         )
+
+
+def _hand_study(root: Path) -> Path:
+    """A study of people only, mixing a Tetris-like and a keepaway-like metric, with hand-written curves."""
+    values = {"t_a": [1, 2, 3], "t_b": [4, 5, 6], "k_a": [20, 22], "k_b": [10, 12]}
+    labels = [*values, "nobody"]
+    (root / layout.STUDY_JSON).parent.mkdir(parents=True)
+    (root / layout.STUDY_JSON).write_text(
+        json.dumps({"name": "mixed", "conditions": [{"label": k} for k in labels], "questionnaire": []})
+    )
+    index = 0
+    for label, finals in values.items():
+        x, y = (
+            ("iteration", "eval/mean_policy_lines_mean")
+            if label[0] == "t"
+            else ("episode", "eval/episode_seconds_mean")
+        )
+        for v in finals:
+            code = f"P{index:03d}"
+            record = {"code": code, "index": index, "condition": label, "step": "done", "simulated": False}
+            run = root / layout.PARTICIPANTS / code / layout.RUN
+            run.mkdir(parents=True)
+            (run.parent / layout.PARTICIPANT_JSON).write_text(json.dumps(record | {"answers": None}))
+            (run / "config.yaml").write_text(f"seed: {index}\n")
+            (run / "metrics.jsonl").write_text(
+                json.dumps({x: 1, y: 0.0}) + "\n" + json.dumps({x: 2, y: v}) + "\n"
+            )
+            index += 1
+    return root
+
+
+def test_a_mixed_study_of_people_compares_each_metric_within_itself(tmp_path):
+    study = _hand_study(tmp_path / "mixed")
+    result = aggregate_study(OmegaConf.create({"runs": str(study), "out": str(tmp_path / "o")}), study)
+    md = Path(result["summary_md"]).read_text()
+    assert md.splitlines()[0] == "# Study mixed: results" and "SIMULATED" not in md
+    assert "0 simulated (scripted clients; participant.json simulated: true) and 10 people" in md
+    assert "| nobody | 0 | (no participant analysed) |" in md
+    rows = {r["condition"]: r for r in _csv(Path(result["summary_csv"]))}
+    assert rows["t_b"]["reference"] == "t_a" and rows["k_b"]["reference"] == "k_a"
+    assert rows["k_a"]["p_value"] == "" and float(rows["k_b"]["difference"]) == -10.0
+    # {1,2,3} against {4,5,6}: 2 of the C(6,3) = 20 relabellings as extreme; 10, 12 against 20, 22: 2 of 6
+    assert float(rows["t_b"]["p_value"]) == pytest.approx(0.1) == _by_hand([4, 5, 6], [1, 2, 3])
+    assert float(rows["k_b"]["p_value"]) == pytest.approx(2 / 6)
+    assert float(rows["t_b"]["p_holm"]) == pytest.approx(0.2) and float(
+        rows["k_b"]["p_holm"]
+    ) == pytest.approx(2 / 6)
+    assert float(rows["t_b"]["effect_size"]) == pytest.approx(3.0)  # means 3 apart, pooled sd 1
+    assert float(rows["t_b"]["diff_ci95_low"]) == pytest.approx(3 - 1.96 * math.sqrt(2 / 3))
+    again = aggregate_study(
+        OmegaConf.create({"runs": str(study), "baseline": "t_b", "out": str(tmp_path / "b")}), study
+    )
+    rows = {r["condition"]: r for r in _csv(Path(again["summary_csv"]))}
+    assert rows["t_a"]["reference"] == "t_b" and float(rows["t_a"]["difference"]) == -3.0
+    assert rows["k_b"]["reference"] == "k_a"
