@@ -48,6 +48,7 @@ from hfrl_torch.study import layout
 EXACT_LIMIT = 20_000  # relabellings enumerated exactly up to this many
 DRAWS = 20_000  # random relabellings beyond it (seeded)
 SEED = 0
+DEFAULT_DOMAIN = "tetris"  # conf/train.yaml's
 
 
 @dataclass
@@ -289,18 +290,36 @@ def _groups(participants: list[Participant], order: list[str]) -> list[Participa
     return out
 
 
-def _references(groups: list[ParticipantGroup], baseline: int) -> dict[str, ParticipantGroup]:
-    """Each condition's reference: ``baseline`` where it has the same metric, else the first condition
-    with that metric (a study mixing Tetris and keepaway compares each domain within itself)."""
+def condition_domains(study: dict, groups: list[ParticipantGroup]) -> dict[str, str]:
+    """Each condition's domain: its runs' ``domain.name``, else the last ``domain=`` of its overrides and the
+    study's ``common`` (as a worker's command line has them), else train.py's default."""
+    common = [str(o) for o in study.get("common") or []]
+    out = {}
+    for c in study.get("conditions") or []:
+        if isinstance(c, dict) and "label" in c:
+            args = [*map(str, c.get("overrides") or []), *common]
+            named = [a.partition("=")[2] for a in args if a.startswith("domain=")]
+            out[str(c["label"])] = named[-1] if named else DEFAULT_DOMAIN
+    for g in groups:
+        domain = g.runs[0].config.get("domain") if g.runs else None
+        if isinstance(domain, dict) and domain.get("name"):
+            out[g.label] = str(domain["name"])
+        out.setdefault(g.label, DEFAULT_DOMAIN)
+    return out
+
+
+def _references(
+    groups: list[ParticipantGroup], baseline: int, domains: dict[str, str]
+) -> dict[str, ParticipantGroup]:
+    """Each condition's reference: ``baseline`` where it has the same domain and metric, else the first
+    condition that does (a study mixing Tetris and keepaway compares each domain within itself)."""
     chosen = groups[baseline]
     out = {}
     for g in groups:
         if not g.y_key:
             continue
-        if chosen.y_key == g.y_key:
-            out[g.label] = chosen
-        else:
-            out[g.label] = next(r for r in groups if r.y_key == g.y_key)
+        alike = [r for r in groups if r.y_key == g.y_key and domains[r.label] == domains[g.label]]
+        out[g.label] = chosen if chosen in alike else alike[0]
     return out
 
 
@@ -812,7 +831,10 @@ METHOD = (
     "(normal approximation), and Holm's correction over the comparisons. Runs differ in length (people "
     "finish early): {final}; the curves' point at x is the mean over the participants whose run reached x "
     "(the band where two or more did; the legend gives n at the start and the end). A participant whose "
-    "run holds several learners counts once, the mean over them."
+    "run holds several learners counts once, the mean over them. Each condition is compared with the "
+    "reference (the first condition, or baseline=) where both have the same domain and metric, else with "
+    "the first condition that has its domain and metric: a study mixing Tetris and keepaway compares each "
+    "domain within itself."
 )
 
 
@@ -837,7 +859,13 @@ def aggregate_study(cfg: DictConfig, study_dir: Path) -> dict[str, object]:
     base = cfg.get("baseline")
     labels = [g.label for g in analysed]
     baseline = groups.index(analysed[0 if base is None else baseline_index(str(base), labels)])
-    refs = _references(groups, baseline)
+    domains = condition_domains(study, groups)
+    all_labels = list(
+        dict.fromkeys(order + [g.label for g in groups] + [p.condition for p in participants if p.condition])
+    )
+    for label in all_labels:
+        domains.setdefault(label, DEFAULT_DOMAIN)
+    refs = _references(groups, baseline, domains)
     rows, table = compare(groups, refs)
     if window is not None:
         final = f"a participant's value is the mean of their points with {window[0]:g} < x <= {window[1]:g}"
@@ -852,11 +880,16 @@ def aggregate_study(cfg: DictConfig, study_dir: Path) -> dict[str, object]:
         md += ["", *reach_table(groups, refs, reach, rows)]
     if any(_has_effort(g) for g in groups) or any(p.feedback for p in participants):
         md += ["", "## Effort", "", *effort_table(groups, rows)]
-    overall = groups[baseline].label
-    reference = {
-        label: refs[label].label if label in refs else overall for label in dict.fromkeys(order + labels)
-    }
-    likert, text, q_md = questionnaire(participants, items, list(reference), reference)
+    answered = [
+        label
+        for label in all_labels
+        if any(p.condition == label and p.record.get("answers") for p in participants)
+    ]
+    reference = {}
+    for label in all_labels:  # the Likert items' reference: the baseline, else the first of the same domain
+        alike = [r for r in answered if domains[r] == domains[label]] or [label]
+        reference[label] = groups[baseline].label if groups[baseline].label in alike else alike[0]
+    likert, text, q_md = questionnaire(participants, items, all_labels, reference)
     md += ["", *q_md]
     people = participant_rows(participants, groups)
     md += [

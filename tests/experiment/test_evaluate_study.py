@@ -333,13 +333,22 @@ def test_bad_study_input_fails_with_one_line_naming_the_file(study, tmp_path):
         )
 
 
+DOMAINS = {"t": "tetris", "k": "keepaway", "n": "keepaway"}
+
+
 def _hand_study(root: Path) -> Path:
     """A study of people only, mixing a Tetris-like and a keepaway-like metric, with hand-written curves."""
     values = {"t_a": [1, 2, 3], "t_b": [4, 5, 6], "k_a": [20, 22], "k_b": [10, 12]}
     labels = [*values, "nobody"]
     (root / layout.STUDY_JSON).parent.mkdir(parents=True)
     (root / layout.STUDY_JSON).write_text(
-        json.dumps({"name": "mixed", "conditions": [{"label": k} for k in labels], "questionnaire": []})
+        json.dumps(
+            {
+                "name": "mixed",
+                "conditions": [{"label": k, "overrides": [f"domain={DOMAINS[k[0]]}"]} for k in labels],
+                "questionnaire": [{"id": "q", "kind": "likert", "points": 5}],
+            }
+        )
     )
     index = 0
     for label, finals in values.items():
@@ -353,7 +362,8 @@ def _hand_study(root: Path) -> Path:
             record = {"code": code, "index": index, "condition": label, "step": "done", "simulated": False}
             run = root / layout.PARTICIPANTS / code / layout.RUN
             run.mkdir(parents=True)
-            (run.parent / layout.PARTICIPANT_JSON).write_text(json.dumps(record | {"answers": None}))
+            answers = {"q": 1 + index % 5}
+            (run.parent / layout.PARTICIPANT_JSON).write_text(json.dumps(record | {"answers": answers}))
             (run / "config.yaml").write_text(f"seed: {index}\n")
             (run / "metrics.jsonl").write_text(
                 json.dumps({x: 1, y: 0.0}) + "\n" + json.dumps({x: 2, y: v}) + "\n"
@@ -386,3 +396,8 @@ def test_a_mixed_study_of_people_compares_each_metric_within_itself(tmp_path):
     rows = {r["condition"]: r for r in _csv(Path(again["summary_csv"]))}
     assert rows["t_a"]["reference"] == "t_b" and float(rows["t_a"]["difference"]) == -3.0
     assert rows["k_b"]["reference"] == "k_a"
+    likert = {r["condition"]: r for r in _csv(Path(again["questionnaire_likert_csv"]))}
+    # answers 1 + index % 5: t_a 1 2 3, t_b 4 5 1, k_a 2 3, k_b 4 5; each domain against its own reference
+    assert likert["t_a"]["reference"] == "t_b" and likert["k_b"]["reference"] == "k_a"
+    assert float(likert["k_b"]["p_value"]) == pytest.approx(_by_hand([4, 5], [2, 3]))
+    assert float(likert["t_a"]["difference"]) == pytest.approx(2 - 10 / 3)
