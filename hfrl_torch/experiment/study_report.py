@@ -64,14 +64,17 @@ class Participant:
 
     @property
     def code(self) -> str:
+        """Their participant code."""
         return str(self.record["code"])
 
     @property
     def simulated(self) -> bool:
+        """Whether their client said it is a script (``simulated: true``), not a person."""
         return self.record.get("simulated") is True
 
     @property
     def condition(self) -> str:
+        """The condition label the design gave them ("" if none)."""
         return str(self.record.get("condition") or "")
 
 
@@ -84,10 +87,12 @@ class ParticipantGroup(Group):
 
     @property
     def seeds(self) -> list[int]:
+        """The participants' enrolment indices: the keys of :meth:`finals` (one unit per participant)."""
         return [int(p.record["index"]) for p in self.members]
 
     @property
     def simulated(self) -> int:
+        """How many of the condition's participants are simulated."""
         return sum(p.simulated for p in self.members)
 
     def finals(self) -> dict[int, float]:
@@ -108,6 +113,7 @@ class ParticipantGroup(Group):
 
     @property
     def measured(self) -> str:
+        """What :meth:`finals` measures, in words, with the range of x where the runs ended."""
         if self.window is not None:
             lo, hi = self.window
             return f"{self.y_key}, mean over {self.x_key} {lo:g} < x <= {hi:g}"
