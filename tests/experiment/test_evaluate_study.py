@@ -15,11 +15,13 @@ from script_runner import run_script
 
 from hfrl_torch.common.errors import ConfigError, UserError
 from hfrl_torch.experiment import study_report
+from hfrl_torch.experiment.aggregate import Run
 from hfrl_torch.experiment.cli import compose_train
 from hfrl_torch.experiment.learners.tetris_cem import CEMLearner
 from hfrl_torch.experiment.run import RunFiles, learn
 from hfrl_torch.experiment.study_report import (
     EXACT_LIMIT,
+    _merged,
     aggregate_study,
     study_dir_of,
     unpaired_permutation,
@@ -401,3 +403,12 @@ def test_a_mixed_study_of_people_compares_each_metric_within_itself(tmp_path):
     assert likert["t_a"]["reference"] == "t_b" and likert["k_b"]["reference"] == "k_a"
     assert float(likert["k_b"]["p_value"]) == pytest.approx(_by_hand([4, 5], [2, 3]))
     assert float(likert["t_a"]["difference"]) == pytest.approx(2 - 10 / 3)
+
+
+def test_a_participant_of_several_learners_counts_once_as_their_mean():
+    y = "eval/episode_seconds_mean"
+    a = Run(Path("r"), {}, [{"episode": 10, y: 4.0, "weight": 1.0}, {"episode": 20, y: 6.0, "weight": 0.5}])
+    b = Run(Path("r"), {}, [{"episode": 10, y: 2.0, "weight": 0.0}])  # a team that played fewer episodes
+    merged = _merged([a, b])
+    assert merged.rows == [{"episode": 10.0, y: 3.0, "weight": 0.5}]
+    assert _merged([a]) is a
