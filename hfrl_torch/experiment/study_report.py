@@ -281,17 +281,39 @@ def read_study_participants(study_dir: Path) -> list[Participant]:
     return out
 
 
+def _no_curve(p: Participant, y_key: str) -> str:
+    """Why a participant's run has no point of the condition's curve (a keepaway run gets its first point
+    after ``agent.log_episodes`` episodes)."""
+    assert p.run is not None
+    agent = p.run.config.get("agent")
+    block = agent.get("log_episodes") if isinstance(agent, dict) else None
+    keepaway = p.run.rows[-1].get("axis") in ("hours", "episodes")
+    hint = f": a keepaway run gets one point per agent.log_episodes={block} episodes" if keepaway else ""
+    return f"reached teaching, its run has no point of {y_key or 'a known learning curve'} yet{hint}"
+
+
 def _groups(participants: list[Participant], order: list[str]) -> list[ParticipantGroup]:
-    """One group per condition (the study's order, then any other label), with its curve's keys."""
+    """One group per condition (the study's order, then any other label) with the first known curve any of
+    its runs has; a participant whose run lacks that curve is left out (``excluded`` says why)."""
     labels = list(dict.fromkeys(order + [p.condition for p in participants if p.run is not None]))
     out = []
     for label in labels:
-        members = [p for p in participants if p.run is not None and p.condition == label]
+        mine = [p for p in participants if p.run is not None and p.condition == label]
+        keys = next(
+            (
+                (x, y)
+                for x, y in CURVES
+                if any(y in p.run.rows[-1] and x in p.run.rows[-1] for p in mine if p.run)
+            ),
+            ("", ""),
+        )
+        for p in mine:
+            assert p.run is not None
+            if not all(k in p.run.rows[-1] for k in keys) or not keys[0]:
+                p.excluded, p.run = _no_curve(p, keys[1]), None
+        members = [p for p in mine if p.run is not None]
         g = ParticipantGroup(label, [p.run for p in members if p.run is not None], members=members)
-        for x, y in CURVES:
-            if members and all(y in r.rows[-1] and x in r.rows[-1] for r in g.runs):
-                g.x_key, g.y_key = x, y
-                break
+        g.x_key, g.y_key = keys
         out.append(g)
     return out
 
@@ -418,11 +440,6 @@ def compare(
     for g in groups:
         if not g.members:
             md.append(f"| {g.label} | 0 | (no participant analysed) | | | | | | |")
-            continue
-        if not g.y_key:
-            md.append(
-                f"| {g.named} | {len(g.members)} | (no known learning curve in metrics.jsonl) | | | | | | |"
-            )
             continue
         row = rows_of[id(g)]
         count = f"{row['participants']}" + (f" of {len(g.members)}" if g.left_out else "")
@@ -803,11 +820,11 @@ def _header(name: str, participants: list[Participant]) -> list[str]:
     declined = sum(p.excluded == "declined" for p in participants)
     stopped = [str(p.record["step"]) for p in participants if p.excluded.startswith("never reached teaching")]
     before = {step: stopped.count(step) for step in sorted(set(stopped), key=_step_order)}
-    other = [
-        f"{p.code} ({p.excluded})"
-        for p in participants
-        if p.excluded and not p.excluded.startswith(("declined", "never"))
-    ]
+    left: dict[str, list[str]] = {}
+    for p in participants:
+        if p.excluded and not p.excluded.startswith(("declined", "never")):
+            left.setdefault(p.excluded.removeprefix("reached teaching, "), []).append(p.code)
+    other = [f"{len(codes)} ({why}: {', '.join(codes)})" for why, codes in left.items()]
     md = [
         title,
         "",
@@ -819,7 +836,7 @@ def _header(name: str, participants: list[Participant]) -> list[str]:
             if before
             else "none stopped before teaching"
         )
-        + (f"; reached teaching but left out: {', '.join(other)}" if other else "")
+        + (f"; reached teaching but left out: {'; '.join(other)}" if other else "")
         + ".",
     ]
     if simulated:
@@ -857,7 +874,7 @@ def aggregate_study(cfg: DictConfig, study_dir: Path) -> dict[str, object]:
     analysed = [g for g in groups if g.members]
     if not analysed:
         raise ConfigError(
-            f"runs={str(study_dir)!r} is a study with no participant who reached teaching with metrics yet "
+            f"runs={str(study_dir)!r} is a study with no participant whose run has a learning curve yet "
             f"({len(participants)} enrolled)"
         )
     for g in groups:

@@ -236,7 +236,7 @@ def test_declined_and_stopped_participants_are_counted_not_analysed(reported):
         and "1 declined consent" in md
         and "never reached teaching: 1 at instructions" in md
     )
-    assert "HHHH (reached teaching, its run has no metrics)" in md
+    assert "reached teaching but left out: 1 (its run has no metrics: HHHH)." in md
     people = {r["code"]: r for r in _csv(out / "per_participant.csv")}
     assert people["FFFF"]["analysed"] == "False" and people["FFFF"]["excluded"] == "declined"
     assert people["GGGG"]["excluded"] == "never reached teaching (at instructions)"
@@ -371,6 +371,14 @@ def _hand_study(root: Path) -> Path:
                 json.dumps({x: 1, y: 0.0}) + "\n" + json.dumps({x: 2, y: v}) + "\n"
             )
             index += 1
+    late = root / layout.PARTICIPANTS / "LATE" / layout.RUN  # keepaway: too few episodes for a point
+    late.mkdir(parents=True)
+    record = {"code": "LATE", "index": index, "condition": "k_a", "step": "done", "simulated": False}
+    (late.parent / layout.PARTICIPANT_JSON).write_text(json.dumps(record))
+    (late / "config.yaml").write_text("seed: 0\nagent:\n  log_episodes: 10\n")
+    (late / "metrics.jsonl").write_text(
+        json.dumps({"axis": "hours", "hours": 0.01, "episode_s_mean": 3.0}) + "\n"
+    )
     return root
 
 
@@ -380,6 +388,10 @@ def test_a_mixed_study_of_people_compares_each_metric_within_itself(tmp_path):
     md = Path(result["summary_md"]).read_text()
     assert md.splitlines()[0] == "# Study mixed: results" and "SIMULATED" not in md
     assert "0 simulated (scripted clients; participant.json simulated: true) and 10 people" in md
+    assert (
+        "1 (its run has no point of eval/episode_seconds_mean yet: a keepaway run gets one point per "
+        "agent.log_episodes=10 episodes: LATE)" in md
+    )
     assert "| nobody | 0 | (no participant analysed) |" in md
     rows = {r["condition"]: r for r in _csv(Path(result["summary_csv"]))}
     assert rows["t_b"]["reference"] == "t_a" and rows["k_b"]["reference"] == "k_a"
