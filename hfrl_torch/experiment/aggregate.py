@@ -661,14 +661,8 @@ def baseline_index(base: str, labels: list[str]) -> int:
     raise ConfigError(f"baseline={base!r} is not one condition here; allowed: {allowed}")
 
 
-def aggregate(cfg: DictConfig) -> dict[str, object]:
-    """``evaluate.py runs=...``: read, group, compare, write CSV, markdown, plot; print the markdown."""
-    raw = cfg.runs
-    dirs = [Path(str(d)) for d in (raw if OmegaConf.is_list(raw) else [raw])]
-    runs, broken = find_runs(dirs)
-    if not runs:
-        raise ConfigError(f"runs={[str(d) for d in dirs]} holds no run with metrics.jsonl")
-    groups = group_runs(runs)
+def report_options(cfg: DictConfig) -> tuple[int, tuple[float, float] | None, float | None]:
+    """The report's ``last``, ``window`` and ``reach`` options, checked (one-line ``ConfigError``)."""
     last = cfg.get("last") or 1
     if isinstance(last, bool) or not isinstance(last, int) or last < 1:
         raise ConfigError(f"last={last!r} is invalid: must be an integer >= 1 (points averaged at the end)")
@@ -686,15 +680,27 @@ def aggregate(cfg: DictConfig) -> dict[str, object]:
                 "from < x <= to)"
             )
         window = (float(bounds[0]), float(bounds[1]))
+    reach = cfg.get("reach")
+    if reach is not None and (isinstance(reach, bool) or not isinstance(reach, (int, float))):
+        raise ConfigError(f"reach={reach!r} is invalid: must be a number (the level to time)")
+    return last, window, None if reach is None else float(reach)
+
+
+def aggregate(cfg: DictConfig) -> dict[str, object]:
+    """``evaluate.py runs=...``: read, group, compare, write CSV, markdown, plot; print the markdown."""
+    raw = cfg.runs
+    dirs = [Path(str(d)) for d in (raw if OmegaConf.is_list(raw) else [raw])]
+    runs, broken = find_runs(dirs)
+    if not runs:
+        raise ConfigError(f"runs={[str(d) for d in dirs]} holds no run with metrics.jsonl")
+    groups = group_runs(runs)
+    last, window, reach = report_options(cfg)
     for g in groups:
         g.last, g.window = last, window
     labels = [g.label for g in groups]
     base = cfg.get("baseline")
     baseline = 0 if base is None else baseline_index(str(base), labels)
-    reach = cfg.get("reach")
-    if reach is not None and (isinstance(reach, bool) or not isinstance(reach, (int, float))):
-        raise ConfigError(f"reach={reach!r} is invalid: must be a number (the level to time)")
-    rows, md = report(groups, baseline, None if reach is None else float(reach))
+    rows, md = report(groups, baseline, reach)
     if broken:
         md += "\n\nRuns without metrics (crashed or killed before their first iteration), left out:\n"
         md += "\n".join(f"- {b}" for b in broken)

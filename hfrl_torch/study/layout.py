@@ -10,6 +10,7 @@ standard library. The layout::
     <dir>/participants/<code>/participant.json   written atomically (tmp + os.replace)
     <dir>/participants/<code>/run/   the participant's train.py run directory
     <dir>/participants/<code>/worker.log, worker.pid
+    <dir>/results/                   evaluate.py runs=<dir>: the report (summary.md, CSVs, plots)
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ PARTICIPANT_JSON = "participant.json"
 RUN = "run"
 WORKER_LOG = "worker.log"
 WORKER_PID = "worker.pid"
+RESULTS = "results"  # evaluate.py's default output for a study
 # names inside a train.py run directory (the same as experiment's and interactive's; test_layout checks)
 CHECKPOINT = "checkpoints/last.pt"
 TEACHING_SUMMARY = "teaching_summary.json"
