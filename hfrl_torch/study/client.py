@@ -102,7 +102,7 @@ class Teacher:
     :param ws_url: the run's WebSocket (``ws://.../ws?token=...`` or the study's ``.../teach/ws``).
     :param origin: the ``Origin`` the page would send (the server that served the page).
     :param rng: the presses' gaps and values are drawn from it.
-    :param presses: send Finish and save after this many presses are answered (None: no limit).
+    :param presses: send Finish and save after this many presses are sent and answered (None: no limit).
     :param seconds: send Finish and save this long after the first frame to judge (None: no limit).
     :param gap_s: each press waits a gap drawn uniformly from this range after the last.
     :param good_share: the share of presses that are Good.
@@ -255,9 +255,8 @@ class Teacher:
         await ws.send_str(json.dumps(obj))
 
     def _done(self) -> bool:
-        answered = sum(p.answered is not None for p in self.record.presses)
-        if self.presses is not None and answered >= self.presses:
-            return True
+        if self.presses is not None and len(self.record.presses) >= self.presses:
+            return True  # sent, not answered: an answer slower than the gap must not let one more through
         if self.seconds is not None and self._first_judge is not None:
             return time.monotonic() - self._first_judge >= self.seconds
         return False
