@@ -74,15 +74,20 @@ class FeedbackChannel:
         """Each queued event's ``SOURCE_KINDS`` code ``[B, capacity]``; a view of the queue."""
         return torch.from_numpy(self._source)
 
-    def collect(self, trainer: Any, clock: Tensor) -> None:
+    def collect(self, trainer: Any, clock: Tensor) -> Tensor:
         """Queue what a trainer that gives at its own times (a person, a replayed log: ``trainer.poll``) has
-        given by each board's ``clock`` [B]; a trainer that judges steps (``give``) has no ``poll``."""
+        given by each board's ``clock`` [B]; a trainer that judges steps (``give``) has no ``poll``. Returns
+        the events queued per board (int64 [B]), for the effort a run books per episode."""
+        queued = torch.zeros(self.boards, dtype=torch.int64)
         poll = getattr(trainer, "poll", None)
         while poll is not None:
             values, times = poll(clock)
-            if not bool((values != 0).any()):
+            given = values.detach().cpu().reshape(-1) != 0
+            if not bool(given.any()):
                 break
             self.put(values, times, trainer.source)
+            queued += given.to(torch.int64)
+        return queued
 
     def put(self, values: Tensor, times: Tensor, source: str | Tensor) -> None:
         """Queue one event per board where ``values`` [B] is nonzero, given at ``times`` [B] seconds.

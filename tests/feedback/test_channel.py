@@ -111,3 +111,21 @@ def test_every_event_is_delivered_once_at_or_after_its_time(events, clocks):
         assert sorted(seen[b]) == seen[b]
         assert sorted(seen[b]) == sorted(t for board, t, _ in events if board == b)
     assert ch.pending == 0
+
+
+def test_collect_queues_a_polling_trainers_events_and_counts_them_per_board():
+    class Polling:
+        source = "human:browser"
+
+        def __init__(self) -> None:
+            self.left = [([1.0, 0.0], [0.2, 0.0]), ([-1.0, 1.0], [0.3, 0.4])]
+
+        def poll(self, clock: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            values, times = self.left.pop(0) if self.left else ([0.0, 0.0], [0.0, 0.0])
+            return torch.tensor(values, dtype=torch.float64), torch.tensor(times, dtype=torch.float64)
+
+    ch = FeedbackChannel(2)
+    clock = torch.tensor([1.0, 1.0])
+    assert ch.collect(Polling(), clock).tolist() == [2, 1] and ch.pending == 3
+    assert ch.collect(object(), clock).tolist() == [0, 0] and ch.pending == 3  # a trainer without poll
+    assert ch.deliver(clock)[keys.FEEDBACK_MASK].sum(-1).tolist() == [2, 1]

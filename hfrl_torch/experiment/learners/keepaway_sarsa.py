@@ -399,7 +399,7 @@ class SarsaKeepers(Learner):
     def _deliver(self, after: TensorDictBase) -> None:
         """The feedback due on each field's clock into the step's tensordict; H^ learns from it."""
         clock = self.clock
-        self.channel.collect(self.trainer, clock)
+        self.episode_given += self.channel.collect(self.trainer, clock)  # a person's presses, a replay's
         while True:
             fb = self.channel.deliver(clock)
             given = fb[keys.FEEDBACK_MASK]
@@ -563,6 +563,7 @@ class SarsaKeepers(Learner):
                 unseen = self.log.resume(play["log_seq"], regenerated=not self.person)
                 if unseen:
                     self.channel.put_events([unseen] + [[] for _ in range(self.fields - 1)])
+                    self.episode_given[0] += sum(ev.value != 0 for ev in unseen)
         except (KeyError, TypeError, RuntimeError, ValueError, AttributeError) as e:
             raise CheckpointError(
                 f"checkpoint of {self.run_dir} does not continue this keepaway run's play ({e!r})"
