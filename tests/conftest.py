@@ -18,7 +18,11 @@ settings.load_profile("deterministic")
 # `make test` runs them alone after the rest, which runs on both cores (pytest-xdist).
 SERIAL_DIRS = {"interactive"}
 SERIAL_FILES = {"test_events.py"}
-PARALLEL_FILES = {"test_press_journal.py", "test_kill_while_paused.py"}  # in interactive/, no latency
+PARALLEL_FILES = {
+    "test_press_journal.py",
+    "test_kill_while_paused.py",
+    "test_keepaway_effort.py",
+}  # in interactive/, no latency
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:

@@ -13,13 +13,11 @@ import time
 from pathlib import Path
 
 import aiohttp
-import pytest
 from study_proc import TETRIS, StudyProc, study_args
 
 from hfrl_torch.study import layout
 from hfrl_torch.study.client import Participant, check_presses
 
-pytestmark = pytest.mark.serial  # two studies of two train.py runs each, one after the other
 FLOOD_GAP_S = (0.12, 0.25)  # 4-8 presses a second, under the run's 20 messages a second
 ACKED_BEFORE_KILL = 12
 
