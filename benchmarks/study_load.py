@@ -74,6 +74,7 @@ URL = re.compile(r"https?://127\.0\.0\.1:(\d+)/")
 TETRIS = ["domain=tetris", "agent=cem", "agent.iterations=4", "agent.population=10"]
 TETRIS += ["agent.games_per_candidate=1", "agent.eval_games=2", "agent.watch_pieces=40"]
 KEEPAWAY = ["domain=keepaway", "agent=sarsa", "agent.hours=0.02", "agent.table_bits=12"]
+KEEPAWAY += ["agent.log_episodes=2"]  # a point of the curve every 2 episodes: a short session still has some
 CONDITIONS = {
     "tetris_linear": [*TETRIS, "fusion=linear"],
     "keepaway_linear": [*KEEPAWAY, "fusion=linear"],
