@@ -30,7 +30,7 @@ from hfrl_torch.fusion.schedules import ConstantWeight
 from hfrl_torch.interactive.live import LiveTeaching, saved_run
 from hfrl_torch.interactive.messages import Feedback, Presence
 from hfrl_torch.interactive.server import TeachingServer
-from hfrl_torch.interactive.session import CONDITION_FIELDS, TeachingSession
+from hfrl_torch.interactive.session import CONDITION_FIELDS, NotTaken, TeachingSession
 from hfrl_torch.interactive.tetris_live import BrowserTetrisTrainer, TetrisPage, landing, tetris_frame
 
 
@@ -110,7 +110,11 @@ def test_the_page_is_told_rounds_games_and_what_is_left():
     page = TetrisPage(session, rounds=4, clock=lambda: wall[0])
     assert not session.live  # nothing to judge before the first game
     page.start_game(0)
-    assert session.live and page.games == 1
+    assert not session.live and page.games == 1  # nor before its first placement
+    env = TetrisEnv(batch=1, rules=TetrisRules(width=6, height=12), features="bt", max_pieces=30)
+    td = env.reset()
+    page.placed(env.step(td.set(keys.ACTION, td[keys.ACTION_MASK].to(torch.int64).argmax(-1))), 0, 0.0, 0.5)
+    assert session.live
     page.practising(0)
     assert not session.live and session.latest()[1] == {  # the person's game is over: said with its lines
         "type": "status",
@@ -270,3 +274,23 @@ def test_a_blind_run_sends_nothing_that_names_its_condition(tmp_path, blind):
         assert "weight" not in text.lower()
     else:  # the same run unblinded says all of it: the check above can fail
         assert {"weight", "weight_name", "weight_sentence"} <= set(named) and "0.37" in text
+
+
+def test_no_press_is_taken_before_the_first_placement_is_on_screen():
+    """Start-up: the first game begins, but its first placement waits for the learner (seconds of numba
+    compiling on a fresh cache); a press then has nothing to judge and is refused, not filed at step -1."""
+    clock, session = _fake(100.0)
+    session.set_live(False)  # as make_live_teaching starts it
+    page = TetrisPage(session, rounds=2)
+    page.start_game(0)
+    clock[0] = 105.0
+    for on_screen in (None, -1, 0):  # 0: the "starting" status the page got on connecting
+        with pytest.raises(NotTaken, match="the run is starting: nothing is on screen to judge yet"):
+            session.apply(Feedback(1.0), on_screen=on_screen)
+    assert session.taken == 0 and not session.settings()["live"] and len(session.queue) == 0
+    env = TetrisEnv(batch=1, rules=TetrisRules(width=6, height=12), features="bt", max_pieces=30)
+    td = env.reset()
+    page.placed(env.step(td.set(keys.ACTION, td[keys.ACTION_MASK].to(torch.int64).argmax(-1))), 0, 105.0, 0.5)
+    clock[0] = 105.5
+    reply = session.apply(Feedback(1.0), on_screen=session.version)
+    assert session.settings()["live"] and (reply["episode"], reply["step"]) == (0, 0)
