@@ -108,7 +108,10 @@ def test_defaults_are_valid():
             "trainer.keys.good='ab' is invalid: must be one character",
         ),
         ("trainer=interactive trainer.actions_per_s=100", "trainer.actions_per_s=100 is invalid"),
-        ("trainer=interactive trainer.blind=maybe", "trainer.blind='maybe' is invalid: must be true or false"),
+        (
+            "trainer=interactive trainer.blind=maybe",
+            "trainer.blind='maybe' is invalid: must be true or false",
+        ),
         ("agent.initial_mean=nan", "agent.initial_mean=nan is invalid: must be a finite number"),
         ("agent.initial_variance=inf", "agent.initial_variance=inf is invalid: must be a finite number"),
     ],
@@ -302,7 +305,7 @@ def test_the_adaptive_priors_strength_follows_the_domain(compose_train):
 
 
 def test_a_run_saved_before_trainer_blind_existed_resumes_blind(tmp_path):
-    """A study's worker resumes with trainer.blind=true, also a run whose saved config predates the setting."""
+    """A study's worker resumes with trainer.blind=true, also a run saved before the setting existed."""
     old = OmegaConf.to_container(compose_config("train", "trainer=interactive"))
     del old["trainer"]["blind"]
     merged = resume_config(OmegaConf.create({}), tmp_path, {"config": old}, ["trainer.blind=true"])
