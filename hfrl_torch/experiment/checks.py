@@ -326,6 +326,8 @@ def check_interactive(cfg: DictConfig) -> None:
     require_float(cfg, "trainer.reconnect_wait_s", 0.0)
     if OmegaConf.select(cfg, "trainer.reaction_s") is not None:  # runs saved before it existed: 0.3
         require_float(cfg, "trainer.reaction_s", MIN_REACTION_S, MAX_REACTION_S)
+    if OmegaConf.select(cfg, "trainer.blind") is not None:  # runs saved before it existed: not blind
+        require_bool(cfg, "trainer.blind")
     require_int(cfg, "trainer.max_message_bytes", 64, 65536)
     require_float(cfg, "trainer.max_messages_per_s", 1.0, 1000.0)
     teachers = require_int(cfg, "trainer.max_teachers", 1, 64)

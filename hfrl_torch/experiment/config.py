@@ -34,7 +34,11 @@ RESUMABLE = (
     "logger.backend",
     "trainer.port",  # where the page is served, and its token, do not change what the run learns
     "trainer.token",
+    "trainer.blind",  # what the page is shown of the condition, not what the run learns
 )
+# resumable settings added after some runs were saved: (the group option that has it, what such a run had),
+# so that a resume may set them on an older run too
+LATER_DEFAULTS: dict[str, tuple[str, Any]] = {"trainer.blind": ("interactive", False)}
 GROUPS = ("domain", "agent", "fusion", "human", "trainer", "logger")
 
 
@@ -88,6 +92,11 @@ def resume_config(
                 f"allowed: {', '.join(RESUMABLE)}"
             )
         values.append(f"{key}={value}")
+    for key, (option, default) in LATER_DEFAULTS.items():
+        group, _, name = key.rpartition(".")
+        node = OmegaConf.select(saved, group)
+        if isinstance(node, DictConfig) and node.get("name") == option and name not in node:
+            node[name] = default
     OmegaConf.set_struct(saved, True)
     try:
         merged = OmegaConf.merge(saved, OmegaConf.from_dotlist(values))

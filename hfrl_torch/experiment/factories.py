@@ -301,20 +301,24 @@ def make_live_teaching(
     """The browser trainer's page server for ``view`` (tetris or keepaway), started, with ``drain``'s trainer
     taking the presses off the session and logging them; with a log, each press is journaled on disk before
     the page is told it was taken, and a killed run's presses the log lacks are logged now (``journal.py``).
-    The page says what sets ``fusion``'s weight in its own words."""
+    The page says what sets ``fusion``'s weight in its own words, unless ``trainer.blind`` (a study's
+    participant): then no message names the fusion or carries its weight."""
     t = cfg.trainer
     speed = DEFAULT_SPEED[view] if t.actions_per_s is None else float(t.actions_per_s)
     reaction = OmegaConf.select(t, "reaction_s", default=None)  # runs saved before it existed: REACTION_S
+    blind = bool(OmegaConf.select(t, "blind", default=False))  # runs saved before it existed: not blind
     session = TeachingSession(
         actions_per_s=speed,
         reconnect_s=float(t.reconnect_wait_s),
         reaction_s=REACTION_S if reaction is None else float(reaction),
+        blind=blind,
     )
     session.set_live(False)  # nothing to judge until the learner shows its game (start-up takes seconds)
-    session.info = {
-        "weight_name": WEIGHT_NAME,
-        "weight_sentence": weight_sentence(str(cfg.fusion.name), fusion.describe_weight, view),
-    }
+    if not blind:
+        session.info = {
+            "weight_name": WEIGHT_NAME,
+            "weight_sentence": weight_sentence(str(cfg.fusion.name), fusion.describe_weight, view),
+        }
     server = TeachingServer(
         session,
         host=t.host,

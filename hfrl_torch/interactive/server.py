@@ -230,7 +230,7 @@ class TeachingServer(GuardedServer):
         sender = asyncio.ensure_future(self._send_frames(ws))
         self._senders[ws] = sender
         try:
-            config = {"type": "config", "keys": self.keys, "view": self.view, **self.session.info}
+            config = {"type": "config", "keys": self.keys, "view": self.view, **self.session.public_info()}
             timing = {"reaction_s": self.session.reaction_s, "reconnect_s": self.session.reconnect_s}
             await self._send(ws, {**config, **timing})
             await self._send(ws, self.session.settings())

@@ -49,6 +49,9 @@ PAUSED_SOURCE = "human:browser:paused"  # a press made while the agent was pause
 PRESSES_KEPT = 200  # presses the end-of-session summary lists
 SLEEP_SLICE_S = 0.05  # the pacing sleeps in slices, so that a stop ends it at once
 ENDINGS = ("finishing", "stopping")
+# what of a message names the run's condition (its fusion and the weight on H^): a blind session
+# (a study's participant must not learn their condition) leaves these out of everything the page gets
+CONDITION_FIELDS = ("weight", "weight_name", "weight_sentence")
 
 
 class NotTaken(RuntimeError):
@@ -73,6 +76,8 @@ class TeachingSession:
     :param reaction_s: the reaction allowance: a press is filed under what was on screen this long before.
     :param reconnect_s: when the last page drops its connection, the loop holds still this long for it to
         come back before going on without the person (a network blip does not end their game).
+    :param blind: leave :data:`CONDITION_FIELDS` out of every frame and of :meth:`public_info` (a study's
+        participant must not learn their condition, not even from the browser's developer tools).
     """
 
     def __init__(
@@ -82,6 +87,7 @@ class TeachingSession:
         sleep: Callable[[float], None] | None = None,
         reaction_s: float = REACTION_S,
         reconnect_s: float = 10.0,
+        blind: bool = False,
     ) -> None:
         if not MIN_SPEED <= actions_per_s <= MAX_SPEED:
             raise ValueError(
@@ -102,6 +108,7 @@ class TeachingSession:
         self.sleep = self._sleep if sleep is None else sleep
         self.reaction_s = float(reaction_s)
         self.reconnect_s = float(reconnect_s)
+        self.blind = bool(blind)
         self._dropped_at: float | None = None
         self.timeline = ScreenTimeline()
         self.info: dict[str, Any] = {}
@@ -131,6 +138,16 @@ class TeachingSession:
         self.not_taken = 0
         self.presses: deque[dict[str, Any]] = deque(maxlen=PRESSES_KEPT)
         self._next_action: float | None = None
+
+    def conceal(self, message: dict[str, Any]) -> dict[str, Any]:
+        """``message`` as the page may see it: without :data:`CONDITION_FIELDS` when the session is blind."""
+        if not self.blind:
+            return message
+        return {k: v for k, v in message.items() if k not in CONDITION_FIELDS}
+
+    def public_info(self) -> dict[str, Any]:
+        """:attr:`info` as the page may see it (:meth:`conceal`)."""
+        return self.conceal(self.info)
 
     # --- the page's side (server thread) ---
 
@@ -317,7 +334,8 @@ class TeachingSession:
         self.ending = "stopping"
 
     def publish(self, frame: dict[str, Any]) -> None:
-        """Show ``frame`` (a JSON-able dict with a ``type``) on every open page."""
+        """Show ``frame`` (a JSON-able dict with a ``type``) on every open page (:meth:`conceal`'d)."""
+        frame = self.conceal(frame)
         with self._cond:
             self.frame = frame
             self.version += 1

@@ -174,13 +174,14 @@ class TetrisPage:
         session.set_live(False)  # nothing to judge before the first game
 
     def start_game(self, round_index: int) -> None:
-        """A game for the person begins (round ``round_index``, 0-based): presses are taken again."""
+        """A game for the person begins (round ``round_index``, 0-based); presses are taken again once its
+        first placement is on screen (:meth:`placed`): before it there is nothing to judge, and the first
+        one can take seconds (the learner's kernels compile at start-up)."""
         if self._round_start is None:
             self._round_start = self.clock()
         self.games += 1
         self._game_lines = 0
         self._steered = [0, 0]  # placements of this game the teaching changed, and placements
-        self.session.set_live(True)
         self._progress(round_index)
 
     def placed(
@@ -207,6 +208,8 @@ class TetrisPage:
         self._game_lines = int(frame["lines"])
         label = f"{frame['label']} (placement {frame['placement']} of game {self.games})"
         self.session.shown(now, round_index, int(td[keys.PIECES_PLACED].sum()), label)
+        if not self.session.live:  # the game's first placement: now there is something to judge
+            self.session.set_live(True)
 
     def practising(self, round_index: int) -> None:
         """Round ``round_index`` practises on its own: nothing to judge on the page."""

@@ -25,6 +25,7 @@ STUDY_KEYS = (
     "trainer.port",
     "trainer.token",
     "trainer.reaction_s",
+    "trainer.blind",
     "seed",
     "resume",
 )

@@ -121,7 +121,7 @@ def fresh_command(
     seed: int,
 ) -> list[str]:
     """The command line of a new run teaching one participant (``overrides``: the condition's, the study's
-    common ones and the calibration's)."""
+    common ones and the calibration's); ``trainer.blind``: no message of the run names its condition."""
     return [
         python,
         str(train_script),
@@ -130,15 +130,16 @@ def fresh_command(
         "trainer.host=127.0.0.1",
         f"trainer.port={port}",
         f"trainer.token={token}",
+        "trainer.blind=true",
         f"seed={seed}",
         f"hydra.run.dir={_quoted(str(run_dir))}",
     ]
 
 
 def resume_command(python: str, train_script: Path, run_dir: Path, port: int, token: str) -> list[str]:
-    """The command line that continues the run in ``run_dir`` (its saved config; a new port and token).
-    ``trainer=interactive`` lets the command line compose (it names the saved trainer, so it changes
-    nothing)."""
+    """The command line that continues the run in ``run_dir`` (its saved config; a new port and token, and
+    ``trainer.blind`` again, for a run saved before the setting existed). ``trainer=interactive`` lets the
+    command line compose (it names the saved trainer, so it changes nothing)."""
     return [
         python,
         str(train_script),
@@ -146,6 +147,7 @@ def resume_command(python: str, train_script: Path, run_dir: Path, port: int, to
         "trainer=interactive",
         f"trainer.port={port}",
         f"trainer.token={token}",
+        "trainer.blind=true",
     ]
 
 

@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import pytest
+from omegaconf import OmegaConf
 
 from hfrl_torch.common.errors import ConfigError, UserError
 from hfrl_torch.experiment.checks import check_kernels
 from hfrl_torch.experiment.cli import check_group_choices, compose_config
-from hfrl_torch.experiment.config import validate_evaluate, validate_train
+from hfrl_torch.experiment.config import resume_config, validate_evaluate, validate_train
 from hfrl_torch.experiment.factories import make_keepaway_config, make_trainer
 from hfrl_torch.experiment.keepaway_evaluation import evaluate_keepaway, format_keepaway_summary
 from hfrl_torch.experiment.tetris_evaluation import evaluate_tetris
@@ -107,6 +108,10 @@ def test_defaults_are_valid():
             "trainer.keys.good='ab' is invalid: must be one character",
         ),
         ("trainer=interactive trainer.actions_per_s=100", "trainer.actions_per_s=100 is invalid"),
+        (
+            "trainer=interactive trainer.blind=maybe",
+            "trainer.blind='maybe' is invalid: must be true or false",
+        ),
         ("agent.initial_mean=nan", "agent.initial_mean=nan is invalid: must be a finite number"),
         ("agent.initial_variance=inf", "agent.initial_variance=inf is invalid: must be a finite number"),
     ],
@@ -297,3 +302,14 @@ def test_the_adaptive_priors_strength_follows_the_domain(compose_train):
         ).fusion.adaptive.prior_count
         == 2
     )
+
+
+def test_a_run_saved_before_trainer_blind_existed_resumes_blind(tmp_path):
+    """A study's worker resumes with trainer.blind=true, also a run saved before the setting existed."""
+    old = OmegaConf.to_container(compose_config("train", "trainer=interactive"))
+    del old["trainer"]["blind"]
+    merged = resume_config(OmegaConf.create({}), tmp_path, {"config": old}, ["trainer.blind=true"])
+    assert merged.trainer.blind is True
+    oracle = OmegaConf.to_container(compose_config("train", "trainer=oracle"))
+    with pytest.raises(ConfigError, match="cannot apply overrides"):  # a trainer that has no such setting
+        resume_config(OmegaConf.create({}), tmp_path, {"config": oracle}, ["trainer.blind=true"])

@@ -3,6 +3,12 @@ the placement on screen the reaction allowance before them and credited to it, a
 
 from __future__ import annotations
 
+import asyncio
+import json
+import time
+from collections.abc import Callable
+
+import aiohttp
 import pytest
 import torch
 from hypothesis import given, settings
@@ -14,14 +20,17 @@ from hfrl_torch.envs.tetris.env import TetrisEnv
 from hfrl_torch.envs.tetris.pieces import placement_table
 from hfrl_torch.envs.tetris.rules import TetrisRules
 from hfrl_torch.experiment import factories
+from hfrl_torch.experiment.cli import compose_config
 from hfrl_torch.experiment.learners import tetris_cem
 from hfrl_torch.feedback.credit import PreviousStep, credit_weights
 from hfrl_torch.feedback.events import FeedbackEvent
 from hfrl_torch.feedback.log import FeedbackLog, load_feedback_log
-from hfrl_torch.interactive.live import LiveTeaching
+from hfrl_torch.fusion.fusion import Fusion
+from hfrl_torch.fusion.schedules import ConstantWeight
+from hfrl_torch.interactive.live import LiveTeaching, saved_run
 from hfrl_torch.interactive.messages import Feedback, Presence
 from hfrl_torch.interactive.server import TeachingServer
-from hfrl_torch.interactive.session import TeachingSession
+from hfrl_torch.interactive.session import CONDITION_FIELDS, NotTaken, TeachingSession
 from hfrl_torch.interactive.tetris_live import BrowserTetrisTrainer, TetrisPage, landing, tetris_frame
 
 
@@ -101,7 +110,11 @@ def test_the_page_is_told_rounds_games_and_what_is_left():
     page = TetrisPage(session, rounds=4, clock=lambda: wall[0])
     assert not session.live  # nothing to judge before the first game
     page.start_game(0)
-    assert session.live and page.games == 1
+    assert not session.live and page.games == 1  # nor before its first placement
+    env = TetrisEnv(batch=1, rules=TetrisRules(width=6, height=12), features="bt", max_pieces=30)
+    td = env.reset()
+    page.placed(env.step(td.set(keys.ACTION, td[keys.ACTION_MASK].to(torch.int64).argmax(-1))), 0, 0.0, 0.5)
+    assert session.live
     page.practising(0)
     assert not session.live and session.latest()[1] == {  # the person's game is over: said with its lines
         "type": "status",
@@ -206,3 +219,78 @@ def test_the_page_counts_the_moves_the_teaching_changed(tmp_path):
     page.start_game(1)
     page.placed(env.step(td.set(keys.ACTION, td[keys.ACTION_MASK].to(torch.int64).argmax(-1))), 1, 0.0, 0.5)
     assert session.latest()[1]["steered"] == [0, 1]  # counted per game
+
+
+async def _watch_and_press(
+    url: str, origin: str, page: TetrisPage, td: TensorDict, end: Callable[[], object]
+) -> list[dict]:
+    """Every message one page gets: the opening ones, a placement, a press's ack, the curve and ``end``'s."""
+    got: list[dict] = []
+    async with aiohttp.ClientSession() as client, client.ws_connect(url, origin=origin) as ws:
+        got += [json.loads((await ws.receive(timeout=10)).data) for _ in range(3)]  # config, settings, role
+        page.start_game(0)
+        page.placed(td, 0, time.time(), weight=0.37, alone=None)
+        while not any(m["type"] == "tetris" for m in got):
+            got.append(json.loads((await ws.receive(timeout=10)).data))
+        page.point(0, 2.0, taught=True)
+        await asyncio.sleep(0.5)  # the placement is on the page the reaction allowance before the press
+        await ws.send_str('{"type": "feedback", "value": 1, "id": 1}')
+        ending = None
+        async for msg in ws:
+            got.append(json.loads(msg.data))
+            if got[-1]["type"] == "ack":
+                ending = asyncio.ensure_future(asyncio.to_thread(end))
+        assert ending is not None
+        await ending
+    return got
+
+
+@pytest.mark.parametrize("blind", [True, False])
+def test_a_blind_run_sends_nothing_that_names_its_condition(tmp_path, blind):
+    """A study's participant must not learn their condition, not even from the browser's developer tools:
+    with trainer.blind no message of the run carries the fusion's name, its scheme or the weight on H^."""
+    over = ["trainer=interactive", "trainer.port=0", f"trainer.blind={str(blind).lower()}"]
+    cfg = compose_config("train", *over, "fusion=linear")
+    fusion = Fusion.from_option("linear", ConstantWeight(0.37))
+    teaching = factories.make_live_teaching(cfg, "tetris", fusion, lambda s: BrowserTetrisTrainer(s))
+    server, session = teaching.server, teaching.session
+    env = TetrisEnv(batch=1, rules=TetrisRules(width=6, height=12), features="bt", max_pieces=30)
+    td = env.reset()
+    td = env.step(td.set(keys.ACTION, td[keys.ACTION_MASK].to(torch.int64).argmax(-1)))
+    url, origin = f"ws://127.0.0.1:{server.port}/ws", f"http://127.0.0.1:{server.port}"
+    end = lambda: teaching.stop("finished", saved_run(tmp_path, "agent.iterations", 5))  # noqa: E731
+    try:
+        pressing = _watch_and_press(url, origin, TetrisPage(session, 2), td, end)
+        got = asyncio.run(asyncio.wait_for(pressing, 30))
+    finally:
+        end()
+    summary = json.loads((tmp_path / "teaching_summary.json").read_text())  # what the end message said
+    types = {m["type"] for m in got}
+    assert {"config", "settings", "role", "tetris", "ack", "curve"} <= types and summary["type"] == "end"
+    text = json.dumps([*got, summary])
+    named = [k for m in [*got, summary] for k in m if k in CONDITION_FIELDS]
+    if blind:
+        assert named == [] and "0.37" not in text and "linear" not in text and "fusion" not in text
+        assert "weight" not in text.lower()
+    else:  # the same run unblinded says all of it: the check above can fail
+        assert {"weight", "weight_name", "weight_sentence"} <= set(named) and "0.37" in text
+
+
+def test_no_press_is_taken_before_the_first_placement_is_on_screen():
+    """Start-up: the first game begins, but its first placement waits for the learner (seconds of numba
+    compiling on a fresh cache); a press then has nothing to judge and is refused, not filed at step -1."""
+    clock, session = _fake(100.0)
+    session.set_live(False)  # as make_live_teaching starts it
+    page = TetrisPage(session, rounds=2)
+    page.start_game(0)
+    clock[0] = 105.0
+    for on_screen in (None, -1, 0):  # 0: the "starting" status the page got on connecting
+        with pytest.raises(NotTaken, match="the run is starting: nothing is on screen to judge yet"):
+            session.apply(Feedback(1.0), on_screen=on_screen)
+    assert session.taken == 0 and not session.settings()["live"] and len(session.queue) == 0
+    env = TetrisEnv(batch=1, rules=TetrisRules(width=6, height=12), features="bt", max_pieces=30)
+    td = env.reset()
+    page.placed(env.step(td.set(keys.ACTION, td[keys.ACTION_MASK].to(torch.int64).argmax(-1))), 0, 105.0, 0.5)
+    clock[0] = 105.5
+    reply = session.apply(Feedback(1.0), on_screen=session.version)
+    assert session.settings()["live"] and (reply["episode"], reply["step"]) == (0, 0)

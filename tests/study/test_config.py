@@ -72,6 +72,7 @@ BAD = [
     ),
     ("conditions.0.overrides", ["seed=3"], "the study sets seed for each participant"),
     ("conditions.0.overrides", ["trainer.port=1"], "the study sets trainer.port"),
+    ("common", ["trainer.blind=false"], "the study sets trainer.blind"),
     ("conditions.0.overrides", ["trainer=oracle"], "the study sets trainer for each participant"),
     ("conditions.0.overrides", ["hydra.run.dir=x"], "the study sets hydra.run.dir"),
     ("common", ["trainer.reaction_s=0.5"], "study.common item 'trainer.reaction_s=0.5' is invalid"),

@@ -220,7 +220,10 @@ def test_stop_resume_and_crash_restarts(raw: dict[str, Any], tmp_path: Path, ope
     assert study.state(p.code)["step"] == "teaching"  # stopped by the study: not finished
     study.resume(p.code)
     _until(study, lambda: study.teaching_endpoint(p.code) is not None)
-    assert any(a.startswith("resume=") for a in _argv(study, p.code)[-1])
+    fresh, resumed = _argv(study, p.code)
+    assert any(a.startswith("resume=") for a in resumed)
+    # both workers are blind: no message of the run names the participant's condition
+    assert "trainer.blind=true" in fresh and "trainer.blind=true" in resumed
     crash = study.directory / "participants" / p.code / "crash"
     crash.touch()
     _until(study, lambda: study.state(p.code)["step"] == "questionnaire")

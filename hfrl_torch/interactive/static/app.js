@@ -287,7 +287,7 @@ function drawKeepaway(f) {
   $("score").textContent = `${f.time_s.toFixed(1)} s`;
   $("action").textContent = f.action;
   $("mean-hold").textContent = f.mean_hold_s === null ? "-" : `${f.mean_hold_s.toFixed(1)} s`;
-  $("weight").textContent = f.weight === null ? "-" : f.weight.toFixed(2);
+  $("weight").textContent = f.weight === null || f.weight === undefined ? "-" : f.weight.toFixed(2);
   $("speed-unit").textContent = `decisions/s (real time: ${f.real_time})`;
 }
 
