@@ -578,6 +578,23 @@ def _smooth(values: list[float], window: int) -> list[float]:
     return out
 
 
+DEPARTURE_AXES = ("iteration", "game", "episode")  # the axes trainer.leave_after (episodes) is counted on
+
+
+def departures(groups: list[Group]) -> list[float]:
+    """Where the trainer left, on the curves' x axis: each distinct ``trainer.leave_after`` counted in
+    episodes (a CE iteration or a game is one watched episode) among the drawn groups' runs."""
+    out = set()
+    for g in groups:
+        if g.x_key not in DEPARTURE_AXES:
+            continue
+        for r in g.runs:
+            trainer = r.config.get("trainer") or {}
+            if trainer.get("leave_after") is not None and trainer.get("leave_unit", "episodes") == "episodes":
+                out.add(float(trainer["leave_after"]))
+    return sorted(out)
+
+
 def plot(groups: list[Group], path: Path) -> None:
     """Learning curves, mean and 95 % band over seeds, one line per group (PNG). Curves of more than 50
     points are drawn as trailing moving averages over 2 % of their length (said on the axis)."""
@@ -598,6 +615,9 @@ def plot(groups: list[Group], path: Path) -> None:
         colour = colours(i % colours.N)
         ax.plot(xs, mean, color=colour, label=f"{g.label} (n={len(g.runs)})")
         ax.fill_between(xs, low, high, color=colour, alpha=0.15)
+    for i, x in enumerate(departures(drawn)):
+        label = "the trainer leaves" if i == 0 else None
+        ax.axvline(x, color="grey", linestyle="--", linewidth=1, label=label)
     ys = {g.y_key for g in groups if g.y_key}
     xk = {g.x_key for g in groups if g.x_key}
     ax.set_xlabel(", ".join(sorted(xk)) or "x")

@@ -13,6 +13,7 @@ from script_runner import run_script
 
 from hfrl_torch.experiment.aggregate import (
     aggregate,
+    departures,
     effect_size,
     find_runs,
     group_runs,
@@ -249,3 +250,22 @@ def test_a_scheme_that_fuses_nothing_is_not_labelled_with_a_weight(tmp_path):
         "fusion.name=linear, fusion.weight=trust",
         "fusion.name=linear, fusion.weight=adaptive",
     ]
+
+
+def test_the_curves_mark_where_the_trainer_left_in_episodes_only(tmp_path):
+    """A lifetime run's figure marks the trainer's departure (trainer.leave_after, counted in episodes: one
+    CE iteration is one watched game); a departure counted in minutes, or no departure, draws no mark."""
+    base = "agent:\n  name: cem\nfusion:\n  name: linear\n"
+    _run(tmp_path, "0", "seed: 0\n" + base + "trainer:\n  name: oracle\n  leave_after: 5\n", [1, 2, 3])
+    _run(tmp_path, "1", "seed: 1\n" + base + "trainer:\n  name: oracle\n  leave_after: 5\n", [1, 2, 4])
+    minutes = "trainer:\n  leave_after: 30\n  leave_unit: minutes\n"
+    _run(tmp_path / "m", "0", "seed: 0\n" + base + minutes, [1])
+    _run(tmp_path / "n", "0", "seed: 0\n" + base + "trainer:\n  name: none\n", [1])
+    assert departures(group_runs(find_runs([tmp_path / "m"])[0])) == []
+    assert departures(group_runs(find_runs([tmp_path / "n"])[0])) == []
+    left = tmp_path / "left"
+    for name in ("0", "1"):
+        (left / name).mkdir(parents=True)
+        for f in ("config.yaml", "metrics.jsonl"):
+            (left / name / f).write_text((tmp_path / name / f).read_text())
+    assert departures(group_runs(find_runs([left])[0])) == [5.0]
