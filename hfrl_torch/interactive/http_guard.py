@@ -5,19 +5,23 @@ against DNS rebinding, the headers that forbid framing on every response (refusa
 TCP connections (one more is answered 503 and closed at once, so a flood of sockets cannot use up the
 process's file handles), the idle timeout that closes half-sent requests, rejections counted and logged as
 one line per interval at most, and a middleware through which no exception of a handler reaches aiohttp: a
-bug is answered 500 without a traceback, counted in ``errors`` and logged once.
+bug is answered 500 without a traceback, counted in ``errors`` and logged once. It also runs the server in a
+daemon thread with its own event loop (:meth:`GuardedServer.start`, :meth:`GuardedServer.stop`), so the
+caller never waits on the network.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import ipaddress
 import logging
 import socket
+import threading
 import time
 from collections import Counter
-from collections.abc import Awaitable, Callable, Iterable
-from typing import Any
+from collections.abc import Awaitable, Callable, Coroutine, Iterable
+from typing import Any, TypeVar
 
 from aiohttp import web
 
@@ -34,6 +38,7 @@ SECURITY_HEADERS = {
     "X-Content-Type-Options": "nosniff",
     "Referrer-Policy": "no-referrer",
 }
+_Server = TypeVar("_Server", bound="GuardedServer")
 
 
 def is_loopback(host: str) -> bool:
@@ -164,7 +169,8 @@ class GuardedServer:
     """The checks and limits an aiohttp server of the package shares (see the module docstring).
 
     A subclass answers :meth:`_refusal` (its own token and Origin rules after :meth:`_host_refusal`), builds
-    its ``web.Application`` with :meth:`_guarded_app` and listens with :meth:`_listen`.
+    its ``web.Application`` in :meth:`_app` with :meth:`_guarded_app`, gives its :attr:`url`, and closes its
+    pages in :meth:`_shutdown`; :meth:`start` serves it in a thread of its own until :meth:`stop`.
 
     :param host: address to bind.
     :param port: port (0: any free one; the bound one after :meth:`_listen`).
@@ -178,6 +184,10 @@ class GuardedServer:
     """
 
     busy_text = b"too many connections to the training run's page; try again shortly"
+    thread_name = "guarded-server"
+    serving = "the server"  # in start's error: "cannot serve <serving> on host:port"
+    close_timeout_s = 0.5  # how long closing a connection waits for its answer
+    stop_timeout_s = 3.0  # how long stop waits for the shutdown, then for the thread
 
     def __init__(
         self,
@@ -206,6 +216,10 @@ class GuardedServer:
         self._hosts: set[str] = set()
         self._runner: web.AppRunner | None = None
         self._listener: asyncio.Server | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._thread: threading.Thread | None = None
+        self._started = threading.Event()
+        self._error: BaseException | None = None
 
     # --- who may connect ---
 
@@ -316,3 +330,90 @@ class GuardedServer:
         if self._runner is not None:
             runner, self._runner = self._runner, None
             await runner.cleanup()
+
+    # --- running, in a thread of its own ---
+
+    @property
+    def url(self) -> str:
+        """The address the subclass's users open."""
+        raise NotImplementedError
+
+    def _app(self) -> web.Application:
+        """The subclass's application, built with :meth:`_guarded_app`."""
+        raise NotImplementedError
+
+    async def _setup(self) -> None:
+        """What the subclass opens on the server's loop before it listens."""
+
+    def _tasks(self) -> list[Coroutine[Any, Any, None]]:
+        """What runs on the loop while it serves (cancelled when it stops)."""
+        return [self._log_rejections()]
+
+    async def _teardown(self) -> None:
+        """What the subclass closes on the loop after the listener and every task."""
+
+    async def _shutdown(self) -> None:
+        """Close the subclass's pages (saying why), then the listener."""
+        await self._close_listener()
+
+    def _serve(self) -> None:
+        loop = asyncio.new_event_loop()
+        self._loop = loop
+        asyncio.set_event_loop(loop)
+        loop.set_exception_handler(self._loop_error)
+
+        async def start() -> None:
+            await self._setup()
+            await self._listen(self._app(), self.close_timeout_s)
+
+        try:
+            loop.run_until_complete(start())
+        except BaseException as e:  # the port is taken, the address is not ours...
+            self._error = e
+            self._started.set()
+            return
+        tasks = [loop.create_task(work) for work in self._tasks()]
+        self._started.set()
+        loop.run_forever()
+        for task in tasks:
+            task.cancel()
+        loop.run_until_complete(self._close_listener())
+        pending = [t for t in asyncio.all_tasks(loop) if not t.done()]
+        for task in pending:
+            task.cancel()
+        loop.run_until_complete(asyncio.gather(*pending, return_exceptions=True))
+        loop.run_until_complete(self._teardown())
+        self.rejections.flush()
+        loop.close()
+
+    def start(self) -> str:
+        """Serve in a daemon thread; returns :attr:`url`. Raises OSError if the address is unusable."""
+        self._thread = threading.Thread(target=self._serve, name=self.thread_name, daemon=True)
+        self._thread.start()
+        self._started.wait(timeout=30)
+        if self._error is not None:
+            raise OSError(f"cannot serve {self.serving} on {self.host}:{self.port}: {self._error}")
+        return self.url
+
+    def _stop_loop(self, shutdown: Callable[[], Coroutine[Any, Any, None]]) -> None:
+        """Run ``shutdown()`` on the server's loop, then stop the loop and join its thread (nothing when it
+        is not serving). Call it from another thread than the server's."""
+        loop, thread = self._loop, self._thread
+        if loop is None or thread is None or not thread.is_alive():
+            return
+        with contextlib.suppress(Exception):  # a shutdown slower than the timeout: the loop stops anyway
+            asyncio.run_coroutine_threadsafe(shutdown(), loop).result(timeout=self.stop_timeout_s)
+        if loop.is_running():
+            loop.call_soon_threadsafe(loop.stop)
+        thread.join(timeout=self.stop_timeout_s)
+
+    def stop(self) -> None:
+        """Close the pages, then stop serving; idempotent."""
+        self._stop_loop(self._shutdown)
+
+    def __enter__(self: _Server) -> _Server:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.stop()

@@ -28,11 +28,9 @@ about a second with pages open, and no message is acknowledged after it returns.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import re
 import secrets
-import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterable
@@ -83,6 +81,11 @@ class TeachingServer(GuardedServer):
     :param rejection_log_s: seconds between the log lines that count rejections.
     :param clock: the rate limit's clock (seconds; ``time.monotonic``).
     """
+
+    thread_name = "teaching-server"
+    serving = "the browser trainer"
+    close_timeout_s = CLOSE_TIMEOUT_S
+    stop_timeout_s = STOP_TIMEOUT_S
 
     def __init__(
         self,
@@ -145,10 +148,6 @@ class TeachingServer(GuardedServer):
         self._tabs: dict[web.WebSocketResponse, str] = {}  # each page's tab name ("": none given)
         self._held: dict[str, asyncio.TimerHandle] = {}  # teaching places kept for a reloading tab
         self.hold_s = session.reconnect_s if hold_s is None else float(hold_s)
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._thread: threading.Thread | None = None
-        self._started = threading.Event()
-        self._error: BaseException | None = None
 
     @property
     def url(self) -> str:
@@ -394,34 +393,7 @@ class TeachingServer(GuardedServer):
             return web.Response(status=404, text="not found")
         return web.FileResponse(STATIC / name)
 
-    def _serve(self) -> None:
-        loop = asyncio.new_event_loop()
-        self._loop = loop
-        asyncio.set_event_loop(loop)
-        loop.set_exception_handler(self._loop_error)
-
-        async def start() -> None:
-            await self._listen(self._app(), CLOSE_TIMEOUT_S)
-
-        try:
-            loop.run_until_complete(start())
-        except BaseException as e:  # the port is taken, the address is not ours...
-            self._error = e
-            self._started.set()
-            return
-        flusher = loop.create_task(self._log_rejections())
-        self._started.set()
-        loop.run_forever()
-        flusher.cancel()
-        loop.run_until_complete(self._close_listener())
-        pending = [t for t in asyncio.all_tasks(loop) if not t.done()]
-        for task in pending:
-            task.cancel()
-        loop.run_until_complete(asyncio.gather(*pending, return_exceptions=True))
-        self.rejections.flush()
-        loop.close()
-
-    async def _shutdown(self, final: Callable[[], dict[str, Any]] | None) -> None:
+    async def _shutdown(self, final: Callable[[], dict[str, Any]] | None = None) -> None:
         """Stop taking messages, tell every page ``final()``, close them, then the server."""
         self._closing = True
         for sender in self._senders.values():  # the end message is the last each page gets
@@ -440,31 +412,8 @@ class TeachingServer(GuardedServer):
         )
         await self._close_listener()
 
-    def start(self) -> str:
-        """Start serving in a daemon thread; returns the URL. Raises OSError if the address is unusable."""
-        self._thread = threading.Thread(target=self._serve, name="teaching-server", daemon=True)
-        self._thread.start()
-        self._started.wait(timeout=30)
-        if self._error is not None:
-            raise OSError(f"cannot serve the browser trainer on {self.host}:{self.port}: {self._error}")
-        return self.url
-
     def stop(self, final: Callable[[], dict[str, Any]] | None = None) -> None:
         """Stop taking messages, send ``final()`` (the run's last word, e.g. the session's summary) to every
         open page, close them, then stop serving; idempotent. Call it from another thread than the
         server's: once it returns, no message is acknowledged any more."""
-        loop, thread = self._loop, self._thread
-        if loop is None or thread is None or not thread.is_alive():
-            return
-        with contextlib.suppress(Exception):  # a shutdown slower than the timeout: the loop stops anyway
-            asyncio.run_coroutine_threadsafe(self._shutdown(final), loop).result(timeout=STOP_TIMEOUT_S)
-        if loop.is_running():
-            loop.call_soon_threadsafe(loop.stop)
-        thread.join(timeout=STOP_TIMEOUT_S)
-
-    def __enter__(self) -> TeachingServer:
-        self.start()
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        self.stop()
+        self._stop_loop(lambda: self._shutdown(final))

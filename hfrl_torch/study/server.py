@@ -36,7 +36,7 @@ import threading
 import time
 import zipfile
 from collections import Counter
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Coroutine, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -175,6 +175,10 @@ class StudyServer(GuardedServer):
     """
 
     busy_text = b"too many connections to the study; try again shortly"
+    thread_name = "study-server"
+    serving = "the study"
+    close_timeout_s = CLOSE_TIMEOUT_S
+    stop_timeout_s = STOP_TIMEOUT_S
 
     def __init__(
         self,
@@ -222,10 +226,6 @@ class StudyServer(GuardedServer):
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="study-calls")
         self._client: aiohttp.ClientSession | None = None
         self._closing = False
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._thread: threading.Thread | None = None
-        self._started = threading.Event()
-        self._error: BaseException | None = None
         self.polls = 0
 
     # --- addresses ---
@@ -631,36 +631,15 @@ class StudyServer(GuardedServer):
             except Exception as e:  # a bug in the study: counted and logged once, and polling goes on
                 self._unhandled(e)
 
-    def _serve(self) -> None:
-        loop = asyncio.new_event_loop()
-        self._loop = loop
-        asyncio.set_event_loop(loop)
-        loop.set_exception_handler(self._loop_error)
+    async def _setup(self) -> None:
+        self._client = aiohttp.ClientSession()
 
-        async def start() -> None:
-            self._client = aiohttp.ClientSession()
-            await self._listen(self._app(), CLOSE_TIMEOUT_S)
+    def _tasks(self) -> list[Coroutine[Any, Any, None]]:
+        return [*super()._tasks(), self._poll()]
 
-        try:
-            loop.run_until_complete(start())
-        except BaseException as e:  # the port is taken, the address is not ours...
-            self._error = e
-            self._started.set()
-            return
-        tasks = [loop.create_task(self._log_rejections()), loop.create_task(self._poll())]
-        self._started.set()
-        loop.run_forever()
-        for task in tasks:
-            task.cancel()
-        loop.run_until_complete(self._close_listener())
-        pending = [t for t in asyncio.all_tasks(loop) if not t.done()]
-        for task in pending:
-            task.cancel()
-        loop.run_until_complete(asyncio.gather(*pending, return_exceptions=True))
+    async def _teardown(self) -> None:
         if self._client is not None:
-            loop.run_until_complete(self._client.close())
-        self.rejections.flush()
-        loop.close()
+            await self._client.close()
 
     async def _shutdown(self) -> None:
         """Stop taking pages, close the open ones (saying why), then the server."""
@@ -674,29 +653,7 @@ class StudyServer(GuardedServer):
         )
         await self._close_listener()
 
-    def start(self) -> str:
-        """Serve in a daemon thread; returns the participants' link. OSError if the address is unusable."""
-        self._thread = threading.Thread(target=self._serve, name="study-server", daemon=True)
-        self._thread.start()
-        self._started.wait(timeout=30)
-        if self._error is not None:
-            raise OSError(f"cannot serve the study on {self.host}:{self.port}: {self._error}")
-        return self.url
-
     def stop(self) -> None:
         """Close every page and stop serving (idempotent); the study itself is the caller's to close."""
-        loop, thread = self._loop, self._thread
-        if loop is not None and thread is not None and thread.is_alive():
-            with contextlib.suppress(Exception):
-                asyncio.run_coroutine_threadsafe(self._shutdown(), loop).result(timeout=STOP_TIMEOUT_S)
-            if loop.is_running():
-                loop.call_soon_threadsafe(loop.stop)
-            thread.join(timeout=STOP_TIMEOUT_S)
+        super().stop()
         self._executor.shutdown(wait=True, cancel_futures=True)
-
-    def __enter__(self) -> StudyServer:
-        self.start()
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        self.stop()

@@ -6,12 +6,10 @@ Needs Debian's chromium and the ``playwright`` package; skipped, saying why, whe
 
 from __future__ import annotations
 
-import http.server
-import threading
 import time
 
 import pytest
-from chromium import ARGS, CHROMIUM, needs_chromium
+from chromium import ARGS, CHROMIUM, decoy_site, needs_chromium
 
 from hfrl_torch.interactive.server import TeachingServer
 from hfrl_torch.interactive.session import TeachingSession
@@ -20,32 +18,11 @@ playwright = pytest.importorskip("playwright.sync_api", reason="the playwright p
 pytestmark = needs_chromium
 
 
-def _decoy_site(trainer_url: str) -> tuple[http.server.ThreadingHTTPServer, str]:
-    """Another site (another port is another origin) whose page frames the trainer four times."""
-    frames = "".join(f'<iframe src="{trainer_url}" width="400" height="300"></iframe>' for _ in range(4))
-    body = f"<html><body><button>Win a prize</button>{frames}</body></html>".encode()
-
-    class Handler(http.server.BaseHTTPRequestHandler):
-        def do_GET(self) -> None:
-            self.send_response(200)
-            self.send_header("Content-Type", "text/html")
-            self.send_header("Content-Length", str(len(body)))
-            self.end_headers()
-            self.wfile.write(body)
-
-        def log_message(self, *args: object) -> None:
-            pass
-
-    site = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-    threading.Thread(target=site.serve_forever, daemon=True).start()
-    return site, f"http://127.0.0.1:{site.server_address[1]}/"
-
-
 def test_a_page_of_another_site_cannot_frame_the_teaching_page():
     session = TeachingSession(actions_per_s=5.0)
     server = TeachingServer(session, port=0)
     server.start()
-    site, decoy = _decoy_site(server.url)
+    site, decoy = decoy_site([server.url] * 4)
     try:
         with playwright.sync_playwright() as p:
             browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)

@@ -10,14 +10,12 @@ Needs Debian's chromium and the ``playwright`` package; skipped, saying why, whe
 from __future__ import annotations
 
 import contextlib
-import http.server
 import json
 import os
 import re
 import signal
 import subprocess
 import sys
-import threading
 import time
 import urllib.request
 from pathlib import Path
@@ -28,7 +26,7 @@ import pytest
 sys.path.insert(
     0, str(Path(__file__).resolve().parents[1] / "interactive")
 )  # the browser tests' shared setup
-from chromium import ARGS, CHROMIUM, needs_chromium
+from chromium import ARGS, CHROMIUM, decoy_site, needs_chromium
 
 if TYPE_CHECKING:
     from playwright.sync_api import Page
@@ -205,27 +203,12 @@ def test_a_page_on_another_origin_cannot_frame_the_study(study):
     with urllib.request.urlopen(joined, timeout=10) as r:
         code = json.load(r)["code"]
     pages = [base, f"{base}p/{code}/", f"{base}p/{code}/teach/"]
-    frames = "".join(f'<iframe src="{url}"></iframe>' for url in pages)
-    body = f"<html><body><button>Win a prize</button>{frames}</body></html>".encode()
-
-    class Decoy(http.server.BaseHTTPRequestHandler):
-        def do_GET(self) -> None:
-            self.send_response(200)
-            self.send_header("Content-Type", "text/html")
-            self.send_header("Content-Length", str(len(body)))
-            self.end_headers()
-            self.wfile.write(body)
-
-        def log_message(self, *args: object) -> None:
-            pass
-
-    site = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Decoy)
-    threading.Thread(target=site.serve_forever, daemon=True).start()
+    site, decoy = decoy_site(pages)
     try:
         with playwright.sync_playwright() as p:
             browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
             page = browser.new_page()
-            page.goto(f"http://127.0.0.1:{site.server_address[1]}/")
+            page.goto(decoy)
             time.sleep(2.0)
             framed = [f for f in page.frames if f != page.main_frame]
             assert len(framed) == 3
