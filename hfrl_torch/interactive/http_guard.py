@@ -370,6 +370,9 @@ class GuardedServer:
             loop.run_until_complete(start())
         except BaseException as e:  # the port is taken, the address is not ours...
             self._error = e
+            with contextlib.suppress(Exception):  # what _setup opened (the study's web client) is closed
+                loop.run_until_complete(self._teardown())
+            loop.close()
             self._started.set()
             return
         tasks = [loop.create_task(work) for work in self._tasks()]

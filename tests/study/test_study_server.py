@@ -6,6 +6,7 @@ TeachingServer's acknowledgements."""
 from __future__ import annotations
 
 import asyncio
+import gc
 import http.client
 import io
 import json
@@ -468,3 +469,15 @@ def test_a_runs_nan_reaches_the_researcher_as_null_in_strict_json(served):
     status, _, body = request(server, "GET", "/admin/api/participants", headers=bearer(study))
     rows = json.loads(body, parse_constant=strict)
     assert status == 200 and rows[0]["progress"] == {"iteration": 1, "loss": None, "lines": 2.0}
+
+
+def test_a_taken_port_is_one_error_and_leaves_nothing_open(served, caplog):
+    """A second study server on the first one's port raises OSError naming the address, and closes the web
+    client it opened for its relays (before: 'Unclosed client session' logged seconds later)."""
+    study, first = served
+    second = StudyServer(study, port=first.port)
+    with pytest.raises(OSError, match=f"cannot serve .* on 127.0.0.1:{first.port}"):
+        second.start()
+    assert second._client is None or second._client.closed
+    gc.collect()
+    assert "Unclosed client session" not in caplog.text
