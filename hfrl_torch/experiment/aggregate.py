@@ -742,7 +742,7 @@ def aggregate(cfg: DictConfig) -> dict[str, object]:
     if any(_has_effort(g) for g in groups):
         plot_effort(groups, out / "effort.png")
         plots.append("effort.png")
-    _to_tensorboard(out, plots)
+    plots_to_tensorboard(out, plots)
     print(md)
     for line in verdicts(rows, groups[baseline].label):
         print(line)
@@ -758,7 +758,8 @@ def aggregate(cfg: DictConfig) -> dict[str, object]:
     }
 
 
-def _to_tensorboard(out: Path, plots: list[str]) -> None:
+def plots_to_tensorboard(out: Path, plots: list[str]) -> None:
+    """The report's plots and summary.md as TensorBoard images and text under ``out/tensorboard``."""
     import numpy as np
     from PIL import Image
     from torch.utils.tensorboard import SummaryWriter

@@ -29,16 +29,16 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from hfrl_torch.common.errors import ConfigError, UserError
+from hfrl_torch.common.stats import summarize
 from hfrl_torch.experiment.aggregate import (
     CURVES,
     Group,
     Run,
-    _ci,
-    _to_tensorboard,
     baseline_index,
     effect_size,
     find_runs,
     holm,
+    plots_to_tensorboard,
     report_options,
 )
 from hfrl_torch.feedback.log import read_feedback_log
@@ -420,7 +420,7 @@ def compare(
             "reference": refs[g.label].label,
         }
         if finals:
-            s = _ci(list(finals.values()))
+            s = summarize(list(finals.values()))
             row.update(mean=s["mean"], sd=s["sd"])
             row.update(
                 ci95_low=s["ci95_low"] if s["n"] > 1 else "", ci95_high=s["ci95_high"] if s["n"] > 1 else ""
@@ -506,7 +506,7 @@ def reach_table(
             continue
         when = list(g.reach(level).values())
         never = sum(w > float(r.rows[-1][g.x_key]) for w, r in zip(when, g.runs, strict=True))
-        s = _ci(when)
+        s = summarize(when)
         ref = refs[g.label]
         diff = p = ""
         if g is not ref:
@@ -537,7 +537,7 @@ def effort_table(groups: list[ParticipantGroup], rows: list[dict]) -> list[str]:
         logged = [float(p.feedback.get("feedback_logged", 0) or 0) for p in g.members]
         good = [float(p.feedback.get("feedback_good", 0) or 0) for p in g.members]
         bad = [float(p.feedback.get("feedback_bad", 0) or 0) for p in g.members]
-        s = _ci(logged)
+        s = summarize(logged)
         cells = [f"{s['mean']:.1f} ({sum(good) / len(good):.1f} / {sum(bad) / len(bad):.1f})"]
         values: dict[str, object] = {"effort_feedback_logged": s["mean"]}
         for key, at in (("feedback_events", -1), ("trainer_minutes", -1), ("weight", 0), ("weight", -1)):
@@ -560,7 +560,7 @@ def _aligned(
             if key in row:
                 by_x.setdefault(float(row[g.x_key]), []).append(float(row[key]))
     xs = sorted(x for x in by_x if not everyone or len(by_x[x]) == len(g.runs))
-    stats = [_ci(by_x[x]) for x in xs]
+    stats = [summarize(by_x[x]) for x in xs]
     return (
         xs,
         [s["mean"] for s in stats],
@@ -691,7 +691,7 @@ def questionnaire(
             got = [v for v, _ in values[label]]
             if not got:
                 continue
-            s = _ci([float(v) for v in got])
+            s = summarize([float(v) for v in got])
             row: dict[str, object] = {
                 "item": item["id"],
                 "condition": label,
@@ -942,7 +942,7 @@ def aggregate_study(cfg: DictConfig, study_dir: Path) -> dict[str, object]:
     if any(_has_effort(g) for g in groups):
         plot_study(groups, out / "effort.png", effort=True)
         plots.append("effort.png")
-    _to_tensorboard(out, plots)
+    plots_to_tensorboard(out, plots)
     print(text_md)
     for line in verdict_lines(rows):
         print(line)
