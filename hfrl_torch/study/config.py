@@ -164,6 +164,14 @@ def _str(node: Mapping[str, Any], key: str, where: str = "study.", empty: bool =
     return value
 
 
+def _name(node: Mapping[str, Any], key: str, where: str = "study.") -> str:
+    value = node.get(key)
+    if not isinstance(value, str) or not NAME.fullmatch(value):
+        allowed = "must be a name of letters, digits, _ . -"
+        raise ConfigError(f"{where}{key}={_short(value)} is invalid: {allowed}")
+    return value
+
+
 def _int(node: Mapping[str, Any], key: str, low: int, high: int, where: str = "study.") -> int:
     value = node.get(key)
     if not isinstance(value, int) or isinstance(value, bool) or not low <= value <= high:
@@ -217,9 +225,7 @@ def _item(raw: Any, i: int) -> Item:
         raise ConfigError(
             f"study.questionnaire[{i}]={_short(raw)} is invalid: must be a mapping with id, kind, text"
         )
-    item_id = raw.get("id")
-    if not isinstance(item_id, str) or not NAME.fullmatch(item_id):
-        raise ConfigError(f"{where}id={_short(item_id)} is invalid: must be a name of letters, digits, _ . -")
+    item_id = _name(raw, "id", where)
     kind = _choice(raw, "kind", ITEM_KINDS, where)
     text = _str(raw, "text", where)
     if kind == "likert":
@@ -246,18 +252,12 @@ def _condition(raw: Any, i: int) -> Condition:
         raise ConfigError(
             f"study.conditions[{i}]={_short(raw)} is invalid: must be a mapping with label, overrides"
         )
-    label = raw.get("label")
-    if not isinstance(label, str) or not NAME.fullmatch(label):
-        raise ConfigError(
-            f"{where}label={_short(label)} is invalid: must be a name of letters, digits, _ . -"
-        )
+    label = _name(raw, "label", where)
     return Condition(label, _overrides(raw, "overrides", where))
 
 
 def _parse(node: dict[str, Any]) -> StudyConfig:
-    name = node.get("name")
-    if not isinstance(name, str) or not NAME.fullmatch(name):
-        raise ConfigError(f"study.name={_short(name)} is invalid: must be a name of letters, digits, _ . -")
+    name = _name(node, "name")
     token = node.get("researcher_token")
     if token is not None and (not isinstance(token, str) or len(token) < 16 or not token.isascii()):
         raise ConfigError(
