@@ -41,7 +41,12 @@ from hfrl_torch.envs.tetris.features import BT  # noqa: E402
 from hfrl_torch.experiment.cli import compose_train  # noqa: E402
 from hfrl_torch.experiment.learners.tetris_dqn import TetrisDQN  # noqa: E402
 
-TAUGHT = ("fusion=linear", "trainer=oracle", "human=mlp")
+TAUGHT = (
+    "fusion=linear",
+    "fusion.weight=trust",
+    "trainer=oracle",
+    "human=mlp",
+)  # the weight measured in docs
 
 
 def make_learner(boards: int, run_dir: Path, *overrides: str) -> TetrisDQN:

@@ -35,7 +35,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.common.stats import summarize
-from hfrl_torch.fusion.weights import UNWEIGHTED
+from hfrl_torch.fusion.weights import WEIGHT_UNUSED
 
 # (x key, y key) of each learner's metrics.jsonl, in the order they are tried
 CURVES = (
@@ -300,7 +300,7 @@ def group_runs(runs: list[Run]) -> list[Group]:
         varying.append(k)
     groups: dict[str, list[Run]] = {}
     for run, flat in zip(runs, flats, strict=True):
-        unused = {"fusion.weight"} if flat.get("fusion.name") in UNWEIGHTED else set()  # none fuses nothing
+        unused = {"fusion.weight"} if flat.get("fusion.name") in WEIGHT_UNUSED else set()
         label = ", ".join(f"{k}={flat.get(k)}" for k in varying if k not in unused) or "all runs"
         groups.setdefault(label, []).append(run)
     out = []

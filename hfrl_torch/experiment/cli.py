@@ -27,7 +27,7 @@ from hfrl_torch.common.checkpoint import load_checkpoint
 from hfrl_torch.common.errors import UserError
 from hfrl_torch.experiment import resolvers  # noqa: F401  (the config's resolvers, before any composing)
 from hfrl_torch.experiment.config import resume_config, validate_train
-from hfrl_torch.fusion.weights import UNWEIGHTED
+from hfrl_torch.fusion.weights import WEIGHT_UNUSED
 
 CONF_DIR = Path(__file__).resolve().parent.parent.parent / "conf"
 CHECKED = "HFRL_TORCH_CHECKED"  # set once every job of this command was checked up front
@@ -168,14 +168,14 @@ def _run_key(cfg: DictConfig) -> str:
     scheme that fuses nothing)."""
     copy = OmegaConf.to_container(cfg, resolve=False)
     fusion = copy.get("fusion") if isinstance(copy, dict) else None
-    if isinstance(fusion, dict) and fusion.get("name") in UNWEIGHTED:
+    if isinstance(fusion, dict) and fusion.get("name") in WEIGHT_UNUSED:
         fusion.pop("weight", None)
     return OmegaConf.to_yaml(OmegaConf.create(copy))
 
 
 def _why_same(cfg: DictConfig) -> str:
     name = OmegaConf.select(cfg, "fusion.name", default=None)
-    return f" (fusion={name} uses no fusion.weight)" if name in UNWEIGHTED else ""
+    return f" (fusion={name} uses no fusion.weight)" if name in WEIGHT_UNUSED else ""
 
 
 def checked() -> bool:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shlex
 import sys
 from pathlib import Path
 from typing import NamedTuple
@@ -10,14 +11,16 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from hfrl_torch.common.checkpoint import load_checkpoint
-from hfrl_torch.common.errors import ConfigError
+from hfrl_torch.common.errors import ConfigError, UserError
 from hfrl_torch.experiment.cli import checked
 from hfrl_torch.experiment.config import resume_config, validate_train
 from hfrl_torch.experiment.factories import set_threads
 from hfrl_torch.experiment.registry import learner_for
 from hfrl_torch.experiment.run import Interrupt, RunFiles, learn
+from hfrl_torch.fusion.weights import UNWEIGHTED
 
 EVALUATE_DEFAULT_DOMAIN = "tetris"  # conf/evaluate.yaml's default domain
+SIMULATED = ("oracle", "value_proxy", "replay")  # trainers a comparison sweep can run again without a person
 
 
 class TrainResult(NamedTuple):
@@ -25,6 +28,35 @@ class TrainResult(NamedTuple):
 
     run_dir: Path
     score: float | None
+
+
+def _compare_lines(cfg: DictConfig, python: str, overrides: list[str]) -> list[str]:
+    """The two commands that run this fused run's parts beside it (the environment alone, H^ alone where the
+    agent has that condition) and compare them: a fused run's number means little on its own."""
+    name = str(cfg.fusion.name)
+    if name in UNWEIGHTED or str(cfg.trainer.name) not in SIMULATED:
+        return []
+    parts = [p for p in UNWEIGHTED if _valid_with(cfg, p)]
+    kept = [o for o in overrides if not o.lstrip("+~").startswith(("fusion=", "hydra.", "resume="))]
+    where = f"multirun/compare_{cfg.domain.name}_{cfg.agent.name}_{name}"
+    sweep = " ".join(shlex.quote(o) for o in [*kept, f"fusion={','.join([*parts, name])}"])
+    return [
+        f"Compare:          {python} train.py -m {sweep} hydra.sweep.dir={where}",
+        f"                  {python} evaluate.py runs={where}   "
+        f"(the same run beside {' and '.join(parts)}, paired)",
+    ]
+
+
+def _valid_with(cfg: DictConfig, fusion: str) -> bool:
+    """Whether this run's config is valid with ``fusion=<fusion>`` in place of its own scheme."""
+    other = cfg.copy()
+    OmegaConf.set_struct(other, False)
+    other.fusion.name = fusion
+    try:
+        validate_train(other)
+    except (UserError, ValueError):
+        return False
+    return True
 
 
 def _commands() -> tuple[str, str]:
@@ -83,5 +115,7 @@ def train(cfg: DictConfig) -> TrainResult:
     if files.checkpoint.exists():
         choice = "" if domain == EVALUATE_DEFAULT_DOMAIN else f"domain={domain} "
         lines.append(f"Evaluate:         {python} evaluate.py {choice}policy={run_dir}")
+    if final and not cfg.resume:
+        lines += _compare_lines(cfg, python, list(HydraConfig.get().overrides.task))
     print("\n".join(lines), file=sys.stderr)
     return TrainResult(run_dir, learner.score(final) if final else None)

@@ -3,8 +3,9 @@ needs from the learner.
 
 ``fusion.weight`` names the kind: ``trust`` (the thesis's eq. 4.4), ``bandit``, ``paired``, ``search``, or
 ``adaptive`` (the best estimator the learner supports: ``paired`` for a learner that compares weights on the
-same test games under a decision-level rule, else ``bandit``); a number is a ``constant`` weight, and
-``fusion=annealed`` anneals it (``annealed``). ``fusion=none`` and ``human_only`` use no weight. A kind's
+same test games under a decision-level rule, else ``bandit``); a number is a ``constant`` weight.
+``fusion=annealed`` anneals its own ``fusion.beta`` (``annealed``), and ``fusion=none`` and ``human_only``
+use no weight: those three leave ``fusion.weight`` unused (:data:`WEIGHT_UNUSED`). A kind's
 plain-words description is its schedule's :meth:`~hfrl_torch.fusion.schedules.WeightSchedule.describe`, and
 its evidence arrives through :meth:`~hfrl_torch.fusion.fusion.Fusion.end_episode`, so nothing else reads
 what a kind means.
@@ -37,6 +38,7 @@ __all__ = [
     "UNWEIGHTED",
     "WEIGHT_KINDS",
     "WEIGHT_OPTIONS",
+    "WEIGHT_UNUSED",
     "WeightKind",
     "check_weight",
     "make_weight",
@@ -49,6 +51,7 @@ EVIDENCE = {
     "searched": "searches the weight as part of its own search",
 }
 UNWEIGHTED = ("none", "human_only")  # fusion options that use no weight
+WEIGHT_UNUSED = (*UNWEIGHTED, "annealed")  # options that leave fusion.weight unused (annealed: fusion.beta)
 
 
 @dataclass(frozen=True)
@@ -107,7 +110,7 @@ def _check_constant(cfg: DictConfig) -> None:
 
 
 def _check_annealed(cfg: DictConfig) -> None:
-    require_float(cfg, "fusion.weight", 0.0)
+    require_float(cfg, "fusion.beta", 0.0)
     require_float(cfg, "fusion.factor", 1e-9, 1.0)
 
 
@@ -136,7 +139,7 @@ WEIGHT_KINDS: dict[str, WeightKind] = {
         WeightKind(
             "annealed",
             _check_annealed,
-            lambda cfg, n: AnnealedWeight([float(cfg.fusion.weight)] * n, float(cfg.fusion.factor)),
+            lambda cfg, n: AnnealedWeight([float(cfg.fusion.beta)] * n, float(cfg.fusion.factor)),
         ),
         WeightKind(
             "trust", _check_trust, lambda cfg, n: TrustWeight.from_initial(float(cfg.fusion.initial_trust), n)
@@ -194,14 +197,15 @@ def check_weight(
     """Check ``fusion``'s weight for a learner that gives ``evidence``; ``givers`` names, for the error, the
     agents that give each kind of evidence. Raises ``ConfigError`` with one line."""
     name = str(cfg.fusion.name)
-    weight = OmegaConf.select(cfg, "fusion.weight", default="trust")
-    if name in UNWEIGHTED:  # the weight is unused; still one of the allowed kinds (sweeps set it)
+    weight = OmegaConf.select(cfg, "fusion.weight", default="adaptive")
+    if name in WEIGHT_UNUSED:  # fusion.weight is unused; still one of the allowed kinds (sweeps set it)
         if isinstance(weight, str):
             if weight not in WEIGHT_OPTIONS:
                 raise _bad_option(weight)
         else:
             _check_constant(cfg)
-        return
+        if name in UNWEIGHTED:
+            return
     kind = WEIGHT_KINDS[weight_kind(cfg, evidence)]
     needed = kind.evidence
     if needed is not None and (needed not in evidence or OPTIONS[name].reward != "none"):

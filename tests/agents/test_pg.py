@@ -217,6 +217,7 @@ def test_pg_with_a_simulated_trainer_learns_h_and_updates_trust_per_learner(tmp_
     over = [
         *SMALL,
         "fusion=linear",
+        "fusion.weight=trust",
         "trainer=oracle",
         "agent.games=6",
         "agent.learners=3",

@@ -69,7 +69,13 @@ def test_resumed_run_equals_an_uninterrupted_one(tmp_path, fusion):
 
 
 def test_trust_is_updated_by_eq_4_4_from_the_test_lines_and_match_rate(tmp_path):
-    over = ["fusion=linear", "trainer=oracle", "trainer.consistency=0.3", "agent.iterations=4"]
+    over = [
+        "fusion=linear",
+        "fusion.weight=trust",
+        "trainer=oracle",
+        "trainer.consistency=0.3",
+        "agent.iterations=4",
+    ]
     train_cem_hf(_cfg(*over), tmp_path, None)
     rows = _curves(tmp_path)
     assert rows[0]["fusion/weight"] == 0.5  # fusion.initial_trust

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shlex
 import subprocess
 from pathlib import Path
 
@@ -15,6 +16,7 @@ from script_runner import run_script
 from hfrl_torch.common.checkpoint import checksum
 from hfrl_torch.experiment import cli
 from hfrl_torch.experiment.config import validate_train
+from hfrl_torch.experiment.train import _compare_lines
 
 ROOT = Path(__file__).resolve().parents[2]
 TINY = [
@@ -112,6 +114,45 @@ def test_a_sweep_whose_jobs_are_the_same_run_is_refused_before_anything_runs(tmp
     monkeypatch.setenv(cli.CHECKED, "")  # precheck marks the jobs it checked in the environment
     cli.precheck(["-m", "fusion=linear", "fusion.weight=0.3,adaptive"], "train", validate_train)
     assert os.environ[cli.CHECKED] == "1"  # a weight swept over a scheme that uses it: two runs, no error
+
+
+def test_a_fused_run_ends_with_a_comparison_with_its_parts_that_runs_as_printed(tmp_path):
+    """The printed sweep runs the same learner alone and H^ alone beside the fused scheme; evaluate.py then
+    pairs them."""
+    over = [*TINY, "agent.iterations=2", "fusion=linear", "trainer=oracle", "logger=none"]
+    out = run("train.py", *over, f"hydra.run.dir={tmp_path / 'fused'}")
+    assert out.returncode == 0, out.stderr[-2000:]
+    lines = out.stderr.splitlines()
+    sweep = next(x for x in lines if x.startswith("Compare:")).removeprefix("Compare:").strip()
+    where = next(a for a in shlex.split(sweep) if a.startswith("hydra.sweep.dir=")).split("=", 1)[1]
+    evaluate = next(x for x in lines if f"evaluate.py runs={where}" in x)
+    assert "fusion=none,human_only,linear" in sweep and "the same run beside none and human_only" in evaluate
+    args = [
+        a for a in shlex.split(sweep)[2:] if not a.startswith("hydra.sweep.dir=")
+    ]  # less "python train.py"
+    assert args[0] == "-m" and set(over) - {"fusion=linear"} <= set(args)
+    swept = run("train.py", *args, f"hydra.sweep.dir={tmp_path / 'compare'}")
+    assert swept.returncode == 0, swept.stderr[-2000:]
+    ev = run("evaluate.py", f"runs={tmp_path / 'compare'}")
+    assert ev.returncode == 0, ev.stderr[-2000:]
+    assert all(f"fusion.name={f}" in ev.stdout for f in ("none", "human_only", "linear")), ev.stdout
+
+
+@pytest.mark.parametrize(
+    ("overrides", "parts"),
+    [
+        (["agent=pg", "fusion=linear"], "fusion=none,linear"),  # PG has no H^-alone condition
+        (["domain=keepaway", "fusion=exponential"], "fusion=none,human_only,exponential"),
+        (["fusion=none", "trainer=oracle"], None),  # nothing fused: nothing to compare
+        (["fusion=linear", "trainer=interactive"], None),  # a person: a sweep cannot run them again
+    ],
+)
+def test_the_comparison_names_only_the_parts_the_agent_has(overrides, parts):
+    lines = _compare_lines(cli.compose_train(*overrides), "python", overrides)
+    if parts is None:
+        assert lines == []
+    else:
+        assert f" {parts} hydra.sweep.dir=" in lines[0] and lines[0].startswith("Compare:")
 
 
 def test_corrupt_and_wrong_domain_checkpoints_fail_cleanly(trained, tmp_path):
@@ -273,7 +314,13 @@ def test_a_sweep_job_that_fails_is_reported_and_the_sweep_goes_on(tmp_path):
 
 
 def test_an_initial_trust_outside_zero_one_is_refused(tmp_path):
-    out = run("train.py", "fusion=linear", "fusion.initial_trust=5", f"hydra.run.dir={tmp_path / 'r'}")
+    out = run(
+        "train.py",
+        "fusion=linear",
+        "fusion.weight=trust",
+        "fusion.initial_trust=5",
+        f"hydra.run.dir={tmp_path / 'r'}",
+    )
     assert out.returncode == 2 and "fusion.initial_trust=5 is invalid" in out.stderr
     assert not (tmp_path / "r").exists()
 

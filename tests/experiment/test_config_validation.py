@@ -19,6 +19,32 @@ def test_defaults_are_valid():
 
 
 @pytest.mark.parametrize(
+    ("overrides", "weight"),
+    [
+        (["fusion=linear"], "adaptive"),  # the default the lifetimes support (docs/feedback.md)
+        (["domain=keepaway", "fusion=exponential"], "adaptive"),
+        (["fusion=control_sharing"], "adaptive"),
+        (["+experiment=fig4_1", "fusion=linear"], "trust"),  # the thesis's figures keep the thesis's rule
+        (["+experiment=fig4_2", "fusion=linear"], "trust"),
+        (["+experiment=fig5_7", "fusion=exponential"], "trust"),
+        (["+experiment=fig5_7", "fusion=linear", "fusion.weight=1.0"], 1.0),
+    ],
+)
+def test_the_default_weight_is_adaptive_and_the_thesis_figures_keep_trust(overrides, weight):
+    cfg = compose_config("train", *overrides)
+    validate_train(cfg)
+    assert cfg.fusion.weight == weight
+
+
+@pytest.mark.parametrize("experiment", ["fig4_1", "fig4_2", "fig5_7"])
+def test_annealed_in_a_figure_sweep_starts_from_its_own_beta(experiment):
+    """The figure configs set fusion.weight=trust for every scheme they sweep; annealed leaves it unused."""
+    cfg = compose_config("train", f"+experiment={experiment}", "fusion=annealed")
+    validate_train(cfg)
+    assert cfg.fusion.beta == 1.0 and cfg.fusion.weight == "trust"
+
+
+@pytest.mark.parametrize(
     ("override", "message"),
     [
         ("domain.width=3", "domain.width=3 is invalid: must be an integer in 4..30"),
@@ -91,6 +117,11 @@ def test_defaults_are_valid():
             "trainer.leave_unit='days' is invalid; allowed: episodes, minutes",
         ),
         ("fusion=annealed trainer=oracle fusion.factor=1.5", "fusion.factor=1.5 is invalid"),
+        ("fusion=annealed trainer=oracle fusion.beta=-1", "fusion.beta=-1 is invalid"),
+        (
+            "fusion=annealed trainer=oracle fusion.weight=maybe",
+            "fusion.weight='maybe' is invalid; allowed: trust",
+        ),
         (
             "trainer=interactive trainer.reconnect_wait_s=-1",
             "trainer.reconnect_wait_s=-1 is invalid: must be a finite number >= 0.0",

@@ -29,7 +29,7 @@ KEEPAWAY = ["domain=keepaway", "agent.learners=2", "agent.table_bits=12", "agent
 LOOPS = {
     "tamer": ["agent=tamer", "trainer=oracle", "agent.games=2", "agent.learners=2", *TETRIS],
     "pg": ["agent=pg", "fusion=linear", "agent.games=2", "agent.learners=2", "agent.eval_games=0", *TETRIS],
-    "cem": ["agent=cem", "fusion=linear", "agent.iterations=2", *CE],
+    "cem": ["agent=cem", "fusion=linear", "fusion.weight=trust", "agent.iterations=2", *CE],  # 2 plays a step
     "sarsa": [*KEEPAWAY, "fusion=linear", "agent.hours=0.002", "agent.epsilon=0"],
 }
 

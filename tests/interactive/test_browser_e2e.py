@@ -252,7 +252,8 @@ def test_tetris_presses_are_filed_and_counted_as_saved_through_reconnects_and_fi
     overrides = ["trainer.actions_per_s=4", "agent.iterations=50", "agent.population=10"]
     overrides += ["agent.games_per_candidate=1", "agent.eval_games=2", "agent.watch_pieces=60"]
     with _teach(run_dir, *overrides) as (proc, page):
-        assert "placement" in page.inner_text("#status") and "trust factor" in page.inner_text(
+        # the default weight (adaptive): CE compares its arms on the same games after each practice round
+        assert "placement" in page.inner_text("#status") and "(fusion.weight=adaptive)" in page.inner_text(
             "#weight-sentence"
         )
         presses = [_press_safely(page, key) for key in ["/", "/", "z"]]
