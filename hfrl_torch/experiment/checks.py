@@ -36,6 +36,7 @@ from hfrl_torch.envs.tetris.env import ENGINES
 from hfrl_torch.envs.tetris.features import FEATURE_SETS
 from hfrl_torch.experiment.factories import make_gym_reference, make_gym_task
 from hfrl_torch.feedback.credit import CREDITS
+from hfrl_torch.feedback.log import read_feedback_log
 from hfrl_torch.fusion.schemes import FUSIONS
 from hfrl_torch.fusion.weights import UNWEIGHTED, check_weight
 from hfrl_torch.interactive.live import KEY_NAMES
@@ -258,12 +259,16 @@ def check_timing(cfg: DictConfig, tetris: bool) -> None:
 
 
 def check_replay_log(cfg: DictConfig) -> None:
-    """``trainer.log``: the feedback log a replay gives again, which must exist."""
+    """``trainer.log``: the feedback log a replay gives again, which must exist and read whole (a corrupt or
+    cut line is refused here, before the run directory exists, rather than replayed in part)."""
     path = OmegaConf.select(cfg, "trainer.log")
     if not path:
         raise ConfigError("trainer=replay needs trainer.log=<feedback log file>")
     if not Path(str(path)).is_file():
         raise ConfigError(f"trainer.log={str(path)!r} is not a file; give a feedback log (feedback.jsonl)")
+    error = read_feedback_log(str(path)).error
+    if error is not None:
+        raise ConfigError(f"trainer.log={str(path)!r} cannot be replayed: {_first(error)}")
 
 
 def check_human(cfg: DictConfig, model: str) -> None:
@@ -655,7 +660,7 @@ def check_keepaway_feedback_trainer(cfg: DictConfig) -> None:
 
 # ------------------------------------------------------------------------------- gym
 
-GYM_TRAINERS = ("none", "oracle")
+GYM_TRAINERS = ("none", "oracle", "replay")
 
 
 def _task_key(cfg: DictConfig) -> str:
@@ -713,18 +718,24 @@ def check_gym_evaluation(cfg: DictConfig) -> None:
 
 
 def check_gym_dqn(cfg: DictConfig) -> None:
-    """DQN on any task: H^ (Deep TAMER on the observation) and the oracle against ``trainer.reference``."""
+    """DQN on any task: H^ (Deep TAMER on the observation), and the oracle against ``trainer.reference`` or a
+    replayed log."""
     check_dqn(cfg)
     trainer = cfg.trainer.name
     if trainer == "none":
         return
     if trainer not in GYM_TRAINERS:
-        raise ConfigError(f"trainer={trainer} is not available for domain=gym yet; allowed: none, oracle")
+        raise ConfigError(
+            f"trainer={trainer} is not available for domain=gym yet; allowed: {', '.join(GYM_TRAINERS)}"
+        )
     require_choice(cfg, "human.name", ("mlp",))
     check_mlp_human(cfg, placements=False)
-    check_gym_reference(cfg)
-    require_float(cfg, "trainer.frequency", 0.0, 1.0)
-    require_float(cfg, "trainer.consistency", 0.0, 1.0)
+    if trainer == "replay":
+        check_replay_log(cfg)
+    else:
+        check_gym_reference(cfg)
+        require_float(cfg, "trainer.frequency", 0.0, 1.0)
+        require_float(cfg, "trainer.consistency", 0.0, 1.0)
     require_float(cfg, "trainer.reaction", 1e-6)
     if require_bool(cfg, "trainer.timing.enabled"):
         check_timing(cfg, tetris=False)

@@ -203,6 +203,8 @@ def make_trainer(cfg: DictConfig, log: FeedbackLog | None) -> Trainer | None:
     t = cfg.trainer
     if t.name == "none":
         return None
+    if t.name == "replay":
+        return make_replay(cfg, log)
     if t.name == "oracle":
         base: Trainer = OracleTrainer(
             frequency=t.frequency,
@@ -210,11 +212,15 @@ def make_trainer(cfg: DictConfig, log: FeedbackLog | None) -> Trainer | None:
             seed=component_seed(cfg.seed, "trainer"),
             reaction=t.reaction,
         )
-    elif t.name == "value_proxy":
-        base = ValueProxyTrainer(mode=t.mode, scale=t.scale, reaction=t.reaction)
     else:
-        base = ReplayTrainer.from_log(t.log, reaction=t.reaction)
+        base = ValueProxyTrainer(mode=t.mode, scale=t.scale, reaction=t.reaction)
     return with_timing(cfg, base, log)
+
+
+def make_replay(cfg: DictConfig, log: FeedbackLog | None) -> Trainer:
+    """``trainer=replay`` wherever events are matched by (board, episode, step): Tetris's placements and any
+    Gymnasium task's ``StepCounter`` steps, each event of ``trainer.log`` given again at the same step."""
+    return with_timing(cfg, ReplayTrainer.from_log(cfg.trainer.log, reaction=cfg.trainer.reaction), log)
 
 
 def with_timing(cfg: DictConfig, base: Trainer, log: FeedbackLog | None) -> Trainer:
@@ -523,8 +529,11 @@ def make_gym_reference(cfg: DictConfig) -> Reference:
 
 
 def make_gym_trainer(cfg: DictConfig, actions: int, log: FeedbackLog | None) -> Trainer:
-    """The simulated oracle of ``domain=gym`` against ``trainer.reference``, with ``trainer.timing``."""
+    """The trainer of ``domain=gym``: a replayed log, or the simulated oracle against ``trainer.reference``
+    with ``trainer.timing``."""
     t = cfg.trainer
+    if t.name == "replay":
+        return make_replay(cfg, log)
     base = ReferenceOracle(
         make_gym_reference(cfg),
         actions,
