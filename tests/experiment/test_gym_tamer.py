@@ -19,6 +19,7 @@ from hfrl_torch.experiment.cli import CHECKED, compose_config, precheck
 from hfrl_torch.experiment.config import validate_train
 from hfrl_torch.experiment.factories import PolicyReference, make_gym_reference
 from hfrl_torch.experiment.gym_evaluation import evaluate_gym
+from hfrl_torch.experiment.learners.gym_tamer import GymTamer
 from hfrl_torch.models.mlp import ActionMLP
 from hfrl_torch.trainers.reference_oracle import ReferenceOracle
 
@@ -40,6 +41,11 @@ RANDOM_RETURN = 22.0  # CartPole-v1 under uniformly random actions (about 22 a e
 
 def _h_weights(learner) -> dict[str, torch.Tensor]:
     return {k: v.clone() for k, v in learner.human.model.state_dict().items()}
+
+
+def _final(learner) -> dict:
+    """A result to report on: the learner's point now."""
+    return learner._point().record
 
 
 def _same(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> bool:
@@ -107,6 +113,23 @@ def test_a_resumed_run_equals_the_uninterrupted_one(run_learner, tmp_path, one_t
         for log in logged
     ]
     assert events[0] == events[1]  # the resumed log has each event once, as the uninterrupted one
+
+
+def test_a_task_that_does_not_replay_the_same_restarts_its_episodes(compose_train, tmp_path, one_thread):
+    cfg = compose_train("logger.backend=none", *CARTPOLE, *TINY, "agent.frames=200", "agent.eval_every=100")
+    first = GymTamer(cfg, tmp_path, None)
+    for _ in range(10):
+        first._step()
+    saved = first.checkpoint()
+    first.close()
+    saved["state"]["observation"] = saved["state"]["observation"] + 1.0  # not where the replay ends
+    again = GymTamer(cfg, tmp_path, {**saved, "history": []})
+    assert again.restarts == 1 and again.played == [] and again.steps == 10
+    again._step()
+    assert len(again.played) == 1 and any(
+        "did not replay the same" in line for line in again.report(_final(again))
+    )
+    again.close()
 
 
 # ----------------------------------------------------------------------------- a saved policy as reference

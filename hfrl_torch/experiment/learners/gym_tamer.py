@@ -27,7 +27,9 @@ from typing import Any
 
 import torch
 from omegaconf import DictConfig, OmegaConf
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictSequential
+from torchrl.envs import EnvBase
 
 from hfrl_torch import keys
 from hfrl_torch.agents.dqn import HumanValuesModule
@@ -110,11 +112,15 @@ class GymTamer(Learner):
         self.finished: list[float] = []  # returns of the training episodes ended since the last point
         self.played: list[torch.Tensor] = []  # every step's actions [B] since the task was seeded
         self.restarts = 0  # resumes whose task did not replay the same (its episodes restarted)
-        self.env = gym_env(self.task, self.boards, component_seed(self.seed, "env"))
-        self.td = self.env.reset()
+        self.env, self.td = self._seeded_env()
         if checkpoint is not None:
             self._load(checkpoint["state"])
         self.saves = WallClockSaves()
+
+    def _seeded_env(self) -> tuple[EnvBase, TensorDictBase]:
+        """The training boards, seeded afresh (a new seed after each restart), and their first observation."""
+        env = gym_env(self.task, self.boards, component_seed(self.seed, "env", self.restarts))
+        return env, env.reset()
 
     # ---------------------------------------------------------------- the loop
 
@@ -262,6 +268,9 @@ class GymTamer(Learner):
     def _replay(self, played: torch.Tensor, observed: torch.Tensor) -> None:
         """Stand where the saved run stood: its actions again on the freshly seeded task; if the task does not
         end where it did, its episodes restart on a new seed (counted in ``restarts``)."""
+        if self.restarts:  # the actions played since the last restart's seed
+            self.env.close()
+            self.env, self.td = self._seeded_env()
         td = self.td
         for action in played:
             _, td = self.env.step_and_maybe_reset(td.set(keys.ACTION, action.to(torch.int64)))
@@ -270,8 +279,7 @@ class GymTamer(Learner):
             return
         self.restarts += 1
         self.env.close()
-        self.env = gym_env(self.task, self.boards, component_seed(self.seed, "env", self.restarts))
-        self.td, self.played = self.env.reset(), []
+        (self.env, self.td), self.played = self._seeded_env(), []
 
     def policy_payload(self) -> dict[str, Any]:
         """What ``evaluate.py`` plays: H^ greedily, on the task it learned."""
