@@ -13,10 +13,12 @@ minutes), H^ is frozen (no delivery, credit or replay; the events still waiting 
 acting. The points are the greedy policy's mean return on ``agent.eval_episodes`` fresh episodes, the same
 seeds at every point, as ``agent=dqn``'s.
 
-A resumed run equals the uninterrupted one: the checkpoint keeps H^ (its buffer included), the trainer, the
-channel and every action played, and the resumed run replays those actions on the freshly seeded task to
-stand where the run stood (a few seconds per 100,000 frames; a task that does not replay the same, e.g. a
-callable ignoring its seed, restarts its episodes instead, and the report says so).
+A checkpoint is written at every point (about 0.5 MB), and a resumed run equals the uninterrupted one: the
+checkpoint keeps H^ (its buffer included), the trainer, the channel and every action played, and the resumed
+run replays those actions on the freshly seeded task to stand where the run stood (CartPole-v1 on 8 boards
+replays about 3,000 frames per CPU second; 900 per wall second on this shared 2-core machine). A task that
+does not replay the same (e.g. a callable ignoring its seed) restarts its episodes instead, and the report
+says so.
 """
 
 from __future__ import annotations
@@ -54,12 +56,11 @@ from hfrl_torch.experiment.learners.gym_dqn import (
     observation_mlp,
 )
 from hfrl_torch.experiment.learners.tetris_games import TRAINER_LABELS
-from hfrl_torch.experiment.run import Learner, Point, WallClockSaves
+from hfrl_torch.experiment.run import Learner, Point
 from hfrl_torch.fusion.transform import FusionModule
 
 __all__ = ["GymTamer"]
 
-SAVE_EVERY_S = 10.0  # wall seconds between checkpoints (taken at the curve's points)
 DECISION_KEYS = (keys.HUMAN_VALUES, keys.FUSED_VALUES, keys.FUSION_WEIGHT)  # the policy's, not the env's
 
 
@@ -115,7 +116,6 @@ class GymTamer(Learner):
         self.env, self.td = self._seeded_env()
         if checkpoint is not None:
             self._load(checkpoint["state"])
-        self.saves = WallClockSaves()
 
     def _seeded_env(self) -> tuple[EnvBase, TensorDictBase]:
         """The training boards, seeded afresh (a new seed after each restart), and their first observation."""
@@ -220,9 +220,6 @@ class GymTamer(Learner):
         self.finished = []
         self.points += 1
         return Point(record, self.frames)
-
-    def save_due(self) -> bool:
-        return self.saves.due(SAVE_EVERY_S)
 
     # ------------------------------------------------------------- checkpoints
 
