@@ -98,7 +98,7 @@ def test_the_trainer_leaving_freezes_h_and_it_keeps_acting(run_learner, tmp_path
 
 
 def test_a_resumed_run_equals_the_uninterrupted_one(run_learner, tmp_path, one_thread):
-    budget = (*CARTPOLE, *TINY, "agent.frames=300", "agent.eval_every=100")
+    budget = (*CARTPOLE, *TINY, "agent.frames=200", "agent.eval_every=100")
     whole, _ = run_learner(tmp_path / "whole", *budget)
     _, stopped = run_learner(tmp_path / "cut", *budget, stop_after=2)  # two points, then "Ctrl-C"
     assert stopped is None
