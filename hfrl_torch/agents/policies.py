@@ -9,6 +9,8 @@ writes with :func:`export_policy`; ``kind`` names the loader in :data:`POLICY_LO
   ``weight``, ``normalise``, ``human_features``, ``human_weights`` besides the linear keys);
 * ``tetris_dqn`` / ``keepaway_dqn`` / ``gym_dqn``: the saved Q network (and, with a trainer, H^ and the
   fusion rule); ``gym_dqn`` also keeps the ``task`` it learned, which ``evaluate.py`` plays it on;
+* ``gym_tamer``: TAMER's H^ alone (Deep TAMER's network on the observation), played greedily, with its
+  ``task``;
 * ``tile_sarsa``: the keepaway Sarsa keepers' tile coding (and H^ by the run's fusion rule). Its weight
   tables stay where the run's state keeps them (``state -> agent -> weight``, ``state -> human ->
   human_weight``), so a checkpoint holds them once.
@@ -19,7 +21,8 @@ returns it and gives ``(module, info)``: ``module`` is a TorchRL policy (a ``Ten
 ``state_features``, ``action_mask``, ``afterstate_terminal``; keepaway: ``observation``, ``action_mask``,
 ``keeper``) and writes ``"action"``, greedily, the fusion component in evaluation mode. ``info`` says what it
 plays (``kind``, ``fusion``, ``describe``; Tetris: ``env_features``, the feature set the env must compute,
-and ``board_width``; keepaway: ``teams`` and the fusion ``scheme``/``weight``), and, where the domain has a
+and ``board_width``; keepaway: ``teams`` and the fusion ``scheme``/``weight``; gym: the ``task`` and its
+``observation_size`` and ``actions``), and, where the domain has a
 faster batched player for the same policy, the policy in that player's form: ``afterstate`` (Tetris: the
 linear afterstate weights the compiled rollout plays, with the fused H^ part) or ``chooser`` (keepaway: the
 ``choose(obs, mask, holder)`` function the batched simulator calls). ``evaluate.py`` plays that form where a
@@ -348,7 +351,31 @@ def _load_gym_dqn(checkpoint: dict[str, Any], device: torch.device, generator: t
         model = _load_state(ActionMLP(size, actions, h["cells"], scale), h["model"], "H^ network")
         human = _Values(lambda td: model(td.get(keys.OBSERVATION)))
     module, fusion = _dqn_policy(q, keys.OBSERVATION, None, [], p, human, [keys.OBSERVATION])
-    info = {"fusion": fusion, "describe": f"DQN, {_fusion_words(p)}", "task": dict(p["task"])}
+    info = {"fusion": fusion, "describe": f"DQN, {_fusion_words(p)}", **_gym_task(p)}
+    return module.to(device), info
+
+
+def _gym_task(p: dict[str, Any]) -> dict[str, Any]:
+    """What a gym policy says of the task it learned (``evaluate.py`` plays it there; a reference is checked
+    against it)."""
+    return {
+        "task": dict(p["task"]),
+        "observation_size": int(p["observation_size"]),
+        "actions": int(p["actions"]),
+    }
+
+
+@register_policy_loader("gym_tamer")
+def _load_gym_tamer(checkpoint: dict[str, Any], device: torch.device, generator: torch.Generator) -> Loaded:
+    p = checkpoint["policy"]
+    size, actions = int(p["observation_size"]), int(p["actions"])
+    model = _load_state(ActionMLP(size, actions, p["cells"], p["scale"]), p["model"], "H^ network")
+    fusion = Fusion("human_only", "none", ConstantWeight(0.0)).eval()
+    module = TensorDictSequential(
+        TensorDictModule(model, in_keys=[keys.OBSERVATION], out_keys=[keys.HUMAN_VALUES]),
+        FusionModule(fusion, "greedy"),
+    )
+    info = {"fusion": fusion, "describe": "TAMER, greedy on H^", **_gym_task(p)}
     return module.to(device), info
 
 

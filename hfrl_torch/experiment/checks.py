@@ -21,7 +21,7 @@ from hfrl_torch.agents.cem.cem import NOISE_SCHEDULES
 from hfrl_torch.agents.sarsa.keepers import LEARNER_KERNELS
 from hfrl_torch.agents.sarsa.sarsa import trace_capacity
 from hfrl_torch.common.checkpoint import load_checkpoint
-from hfrl_torch.common.errors import ConfigError
+from hfrl_torch.common.errors import CheckpointError, ConfigError
 from hfrl_torch.common.validation import require_bool, require_choice, require_float, require_int
 from hfrl_torch.envs.gym_task import TaskSpaces, task_spaces
 from hfrl_torch.envs.keepaway.params import (
@@ -34,7 +34,7 @@ from hfrl_torch.envs.keepaway.params import (
 )
 from hfrl_torch.envs.tetris.env import ENGINES
 from hfrl_torch.envs.tetris.features import FEATURE_SETS
-from hfrl_torch.experiment.factories import make_gym_reference, make_gym_task
+from hfrl_torch.experiment.factories import PolicyReference, make_gym_reference, make_gym_task
 from hfrl_torch.feedback.credit import CREDITS
 from hfrl_torch.feedback.log import read_feedback_log
 from hfrl_torch.fusion.schemes import FUSIONS
@@ -721,12 +721,40 @@ def check_gym_dqn(cfg: DictConfig) -> None:
     """DQN on any task: H^ (Deep TAMER on the observation), and the oracle against ``trainer.reference`` or a
     replayed log."""
     check_dqn(cfg)
-    trainer = cfg.trainer.name
-    if trainer == "none":
-        return
-    if trainer not in GYM_TRAINERS:
+    if cfg.trainer.name != "none":
+        check_gym_trainer(cfg, GYM_TRAINERS)
+
+
+def check_gym_tamer(cfg: DictConfig) -> None:
+    """TAMER alone on any task: its budget, Deep TAMER's H^ on the observation, and the oracle it cannot do
+    without (against ``trainer.reference``), which may leave (``trainer.leave_after``)."""
+    a = "agent."
+    frames = require_int(cfg, a + "frames", 1)
+    require_int(cfg, a + "boards", 1, 4096)
+    require_int(cfg, a + "eval_every", 1, max(frames, 1))
+    require_int(cfg, a + "eval_episodes", 1, 4096)
+    fusion, trainer = cfg.fusion.name, cfg.trainer.name
+    if fusion != "none":
         raise ConfigError(
-            f"trainer={trainer} is not available for domain=gym yet; allowed: {', '.join(GYM_TRAINERS)}"
+            f"fusion={fusion!r} with agent=tamer: TAMER acts on H^ alone; use fusion=none, or agent=dqn "
+            f"fusion={fusion} to fuse H^ with a DQN"
+        )
+    if trainer == "none":
+        raise ConfigError(
+            "trainer=none with agent=tamer: TAMER alone learns only from a trainer's feedback; "
+            "choose trainer=oracle (with trainer.reference=...)"
+        )
+    check_gym_trainer(cfg, GYM_TRAINERS[1:])
+    check_departure(cfg)
+
+
+def check_gym_trainer(cfg: DictConfig, allowed: Sequence[str]) -> None:
+    """The trainer of a taught ``domain=gym`` learner (one of ``allowed``): the oracle against
+    ``trainer.reference``, its noise and timing, and Deep TAMER's H^ (``human=mlp``) that learns from it."""
+    trainer = cfg.trainer.name
+    if trainer not in allowed or trainer == "none":
+        raise ConfigError(
+            f"trainer={trainer} is not available for domain=gym yet; allowed: {', '.join(allowed)}"
         )
     require_choice(cfg, "human.name", ("mlp",))
     check_mlp_human(cfg, placements=False)
@@ -742,17 +770,32 @@ def check_gym_dqn(cfg: DictConfig) -> None:
 
 
 def check_gym_reference(cfg: DictConfig) -> None:
-    """``trainer.reference``: a callable that imports and, on two of the task's observations, returns
-    actions [2] or action values [2, A]."""
+    """``trainer.reference``: a callable that imports, or a ``domain=gym`` run directory or checkpoint of
+    the task's observation size and action count, that on two of the task's observations returns actions
+    [2] or action values [2, A]."""
     reference = OmegaConf.select(cfg, "trainer.reference")
     if reference is None:
         raise ConfigError(
             "trainer=oracle on domain=gym needs trainer.reference=<package.module:callable>, a policy of "
             "observations [B, S] returning actions [B] or action values [B, A] "
-            "(e.g. examples.cartpole:reference)"
+            "(e.g. examples.cartpole:reference), or a domain=gym run directory or checkpoint"
         )
-    policy = make_gym_reference(cfg)
+    try:
+        policy = make_gym_reference(cfg)
+    except CheckpointError as exc:
+        raise ConfigError(
+            f"trainer.reference={reference!r} is not a checkpoint of a domain=gym run ({_first(exc)}); "
+            "allowed: a domain=gym run directory or checkpoint, or package.module:callable"
+        ) from None
     spaces = gym_spaces(cfg)
+    if isinstance(policy, PolicyReference):
+        saved = (policy.observation_size, policy.actions)
+        if saved != (spaces.observation_size, spaces.actions):
+            raise ConfigError(
+                f"trainer.reference={reference!r} plays observations of size {saved[0]} with {saved[1]} "
+                f"actions; {_task_key(cfg)} has observations of size {spaces.observation_size} and "
+                f"{spaces.actions} actions"
+            )
     try:
         right_actions(policy, spaces.sample.clone(), spaces.actions)
     except ValueError as exc:

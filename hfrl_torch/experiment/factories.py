@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -11,12 +12,14 @@ from typing import Any
 import numba
 import torch
 from omegaconf import DictConfig, OmegaConf
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModule
 
+from hfrl_torch import keys
 from hfrl_torch.agents.cem import CEMConfig
 from hfrl_torch.agents.cem.cem import Rollout
 from hfrl_torch.agents.dqn import DeepQ, SharedTileTamer
+from hfrl_torch.agents.policies import load_policy
 from hfrl_torch.agents.sarsa import SarsaLambda, sarsa_keepers
 from hfrl_torch.agents.sarsa.policy import load_keeper_policy
 from hfrl_torch.agents.tamer import TamerAgent
@@ -523,9 +526,38 @@ def make_gym_task(cfg: DictConfig) -> GymTask:
     return GymTask(env_id=str(d.env_id), max_episode_steps=None if steps is None else int(steps))
 
 
+def names_a_checkpoint(reference: object) -> bool:
+    """Whether ``trainer.reference`` names a run directory or checkpoint file rather than a
+    ``module:callable`` (which holds no path separator and does not end in ``.pt``)."""
+    text = str(reference)
+    return Path(text).exists() or "/" in text or os.sep in text or text.endswith(".pt")
+
+
+class PolicyReference:
+    """A saved ``domain=gym`` policy as the oracle's reference: its greedy action of each observation [B, S].
+
+    :param checkpoint: as ``load_checkpoint`` returns it (a run of any agent on ``domain=gym``).
+    """
+
+    def __init__(self, checkpoint: dict[str, Any]) -> None:
+        self.module, info = load_policy(checkpoint)
+        self.path, self.describe = str(checkpoint["path"]), str(info["describe"])
+        self.observation_size, self.actions = int(info["observation_size"]), int(info["actions"])
+
+    @torch.no_grad()
+    def __call__(self, obs: torch.Tensor) -> torch.Tensor:
+        td = TensorDict({keys.OBSERVATION: obs.to(torch.float32)}, batch_size=obs.shape[:1])
+        return self.module(td).get(keys.ACTION).reshape(-1).to(torch.int64)
+
+
 def make_gym_reference(cfg: DictConfig) -> Reference:
-    """The reference policy ``trainer.reference`` names (observations [B, S] -> actions or action values)."""
-    return load_callable(cfg.trainer.reference, "trainer.reference")
+    """The reference policy ``trainer.reference`` names (observations [B, S] -> actions or action values): a
+    ``module:callable``, or a ``domain=gym`` run directory or checkpoint whose greedy policy it is
+    (``CheckpointError`` naming the file if it is none)."""
+    reference = cfg.trainer.reference
+    if names_a_checkpoint(reference):
+        return PolicyReference(load_checkpoint(str(reference), domain="gym"))
+    return load_callable(reference, "trainer.reference")
 
 
 def make_gym_trainer(cfg: DictConfig, actions: int, log: FeedbackLog | None) -> Trainer:

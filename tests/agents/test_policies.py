@@ -49,6 +49,7 @@ CASES = [
     ),
     ("gym_dqn", [*GYM, *DQN], "gym_dqn"),
     ("gym_dqn_fused", [*GYM, *DQN, *TAUGHT_DQN], "gym_dqn"),
+    ("gym_tamer", [*GYM, "agent=tamer", "trainer=oracle", "agent.boards=2", "human.cells=[8]"], "gym_tamer"),
 ]
 
 
@@ -108,7 +109,7 @@ def test_every_learners_saved_policy_loads_to_a_module_that_acts(
     assert bool(mask.gather(1, action.view(-1, 1)).all())  # only actions the env allows
     # the direct form the domain's batched player takes, where there is one
     direct = {"tetris": "afterstate", "keepaway": "chooser"}.get(ckpt["domain"])
-    assert (direct is None or info[direct] is None) == kind.endswith("_dqn")
+    assert (direct is None or info[direct] is None) == (kind.endswith("_dqn") or kind == "gym_tamer")
 
 
 def test_the_linear_module_chooses_the_best_safe_placement(tmp_path, compose_train):
@@ -139,7 +140,7 @@ def test_an_unknown_kind_is_refused_in_one_line_naming_it_and_the_allowed(bad):
         load_policy(ckpt)
     message = str(e.value)
     assert "\n" not in message and repr(bad) in message and "run/last.pt" in message
-    assert "allowed: fused, gym_dqn, keepaway_dqn, linear, tetris_dqn, tile_sarsa" in message
+    assert "allowed: fused, gym_dqn, gym_tamer, keepaway_dqn, linear, tetris_dqn, tile_sarsa" in message
 
 
 def test_export_refuses_a_kind_nothing_loads():

@@ -35,7 +35,17 @@ from hfrl_torch.models.mlp import ActionMLP
 from hfrl_torch.trainers import Trainer
 from hfrl_torch.trainers.transform import HumanFeedback
 
-__all__ = ["GymDQN", "gym_env", "input_scale", "observation_mlp", "play_returns"]
+SCORE_KEY = "eval/greedy_return"  # the points of every domain=gym learner
+
+__all__ = [
+    "GymDQN",
+    "greedy_returns",
+    "gym_env",
+    "input_scale",
+    "observation",
+    "observation_mlp",
+    "play_returns",
+]
 
 
 def input_scale(spaces: TaskSpaces) -> list[float]:
@@ -58,7 +68,8 @@ def gym_env(task: GymTask, boards: int, seed: int) -> EnvBase:
     )
 
 
-def _observation(td: TensorDictBase) -> torch.Tensor:
+def observation(td: TensorDictBase) -> torch.Tensor:
+    """What Q and H^ read of a step: the observation vector [B, S]."""
     return td.get(keys.OBSERVATION)
 
 
@@ -74,7 +85,7 @@ class GymDQN(DeepQLearner):
         check_gym_dqn(cfg)
 
     human_in_keys: ClassVar[list[Any]] = [keys.OBSERVATION]
-    score_key = "eval/greedy_return"
+    score_key = SCORE_KEY
     score_unit = "return per episode"
     episode_word = "episode"
 
@@ -102,7 +113,7 @@ class GymDQN(DeepQLearner):
 
     def make_human(self) -> HumanValues:
         model = observation_mlp(self.spaces, list(self.cfg.human.cells), self.scale)
-        return make_deep_tamer(self.cfg, model, _observation, self.boards)
+        return make_deep_tamer(self.cfg, model, observation, self.boards)
 
     def make_trainer(self, log: FeedbackLog) -> Trainer:
         return make_gym_trainer(self.cfg, self.spaces.actions, log)
@@ -122,13 +133,7 @@ class GymDQN(DeepQLearner):
         return max(0.0, performance - float(self.cfg.domain.min_return))
 
     def greedy_evaluation(self) -> dict[str, float]:
-        env = gym_env(self.task, self.eval_episodes, component_seed(self.seed, "eval_games"))
-        try:
-            returns = play_returns(env, self.greedy_policy, self.fusion)
-        finally:
-            env.close()
-        s = summarize(returns)
-        return {f"{self.score_key}_{k}": s[k] for k in ("mean", "median", "ci95_low", "ci95_high")}
+        return greedy_returns(self.task, self.eval_episodes, self.seed, self.greedy_policy, self.fusion)
 
     def policy_payload(self) -> dict[str, Any]:
         human = None
@@ -146,6 +151,18 @@ class GymDQN(DeepQLearner):
             fusion=self.fusion_payload(),
             human=human,
         )
+
+
+def greedy_returns(task: GymTask, episodes: int, seed: int, policy: Any, fusion: Any) -> dict[str, float]:
+    """A curve's point: ``policy`` played greedily on ``episodes`` fresh episodes of ``task`` (the run's
+    ``eval_games`` seeds, the same at every point); the mean, median and 95 % interval of their returns."""
+    env = gym_env(task, episodes, component_seed(seed, "eval_games"))
+    try:
+        returns = play_returns(env, policy, fusion)
+    finally:
+        env.close()
+    s = summarize(returns)
+    return {f"{SCORE_KEY}_{k}": s[k] for k in ("mean", "median", "ci95_low", "ci95_high")}
 
 
 @torch.no_grad()
