@@ -11,6 +11,7 @@ import io
 import json
 import re
 import threading
+from pathlib import Path
 from typing import Any
 
 import aiohttp
@@ -18,6 +19,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from hfrl_torch.common.checkpoint import load_checkpoint
 from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.feedback.log import load_feedback_log
 from hfrl_torch.interactive.gym_live import png_data_url
@@ -46,9 +48,10 @@ def _image(url: str) -> np.ndarray:
     return np.asarray(Image.open(io.BytesIO(base64.b64decode(url.split(",", 1)[1]))))
 
 
-async def _teach(url: str) -> dict[str, Any]:
+async def _teach(url: str, presses: int = 14) -> dict[str, Any]:
     """Teach as a page would: wait for a frame, press Good and Bad, pause and press, resume, press, and
-    finish at once (the last presses may still wait in the queue); returns what the run said."""
+    finish at once (the last presses may still wait in the queue); returns what the run said. With fewer
+    than 14 ``presses``: that many Good presses, then finish."""
     origin = url.split("/?")[0].rstrip("/")
     said: dict[str, Any] = {"frames": [], "acks": [], "errors": [], "end": None}
     async with aiohttp.ClientSession() as client, client.ws_connect(f"{origin}/ws", origin=origin) as ws:
@@ -76,16 +79,19 @@ async def _teach(url: str) -> dict[str, Any]:
         while not said["frames"]:
             await receive()
         await asyncio.sleep(0.5)  # a press counts for the frame on screen 0.3 s before it
-        for n in range(8):
-            await press(n, 1 if n % 3 else -1)
-        await ws.send_str(json.dumps({"type": "pause", "paused": True}))
-        assert (await reply("pause"))["type"] == "ack"
-        for n in range(8, 11):
-            await press(n, -1)
-        await ws.send_str(json.dumps({"type": "pause", "paused": False}))
-        assert (await reply("pause"))["type"] == "ack"
-        for n in range(11, 14):
+        for n in range(presses if presses < 14 else 0):
             await press(n, 1)
+        for n in range(8 if presses == 14 else 0):
+            await press(n, 1 if n % 3 else -1)
+        if presses == 14:
+            await ws.send_str(json.dumps({"type": "pause", "paused": True}))
+            assert (await reply("pause"))["type"] == "ack"
+            for n in range(8, 11):
+                await press(n, -1)
+            await ws.send_str(json.dumps({"type": "pause", "paused": False}))
+            assert (await reply("pause"))["type"] == "ack"
+            for n in range(11, 14):
+                await press(n, 1)
         await ws.send_str(json.dumps({"type": "finish"}))
         while said["end"] is None:
             m = await receive()
@@ -94,23 +100,29 @@ async def _teach(url: str) -> dict[str, Any]:
     return said
 
 
-def test_each_acknowledged_press_on_cartpole_is_logged_once_under_the_step_it_was_filed(
-    run_learner, tmp_path, one_thread
-) -> None:
+def _taught(run_learner: Any, run_dir: Path, presses: int, checkpoint: Any = None) -> tuple[Any, Any, dict]:
+    """The learner run in ``run_dir`` with a scripted page (:func:`_teach`) in another thread."""
     said: dict[str, Any] = {}
 
     def page(learner: Any) -> None:
         def teach() -> None:
             try:
-                said.update(asyncio.run(_teach(learner.teaching.url)))
+                said.update(asyncio.run(_teach(learner.teaching.url, presses)))
             except BaseException as e:  # the run must not go on for its whole budget
                 said["failed"] = repr(e)
                 learner.teaching.session.ending = "finishing"
 
         threading.Thread(target=teach, daemon=True).start()
 
-    learner, final = run_learner(tmp_path, *CARTPOLE, *LIVE, prepare=page)
+    learner, final = run_learner(run_dir, *CARTPOLE, *LIVE, checkpoint=checkpoint, prepare=page)
     assert "failed" not in said, said.get("failed")
+    return learner, final, said
+
+
+def test_each_acknowledged_press_on_cartpole_is_logged_once_under_the_step_it_was_filed(
+    run_learner, tmp_path, one_thread
+) -> None:
+    learner, final, said = _taught(run_learner, tmp_path, 14)
     assert final is not None and learner.frames > 0  # a finished run (not interrupted) that played
     acks, end = said["acks"], said["end"]
     assert said["errors"] == [] and len(acks) == 14
@@ -131,14 +143,14 @@ def test_each_acknowledged_press_on_cartpole_is_logged_once_under_the_step_it_wa
         assert m and (int(m[1]), int(m[2])) == (a["step"] + 1, a["episode"] + 1), a
 
     # credited where the oracle's judgement of the action filed under would be, r = 0.3 s after it on the
-    # simulated clock, unless the loop's clock was not yet there when it read the press (after a pause)
+    # simulated clock, or at the loop's clock when it read the press, if that was earlier (a step boundary:
+    # after a pause, a stall, or at the stop)
     action_time = {(f.episode, f.step): f.sim for f in learner.teaching.session.timeline}
     assert {(f["episode"] - 1, f["step"] - 1) for f in said["frames"]} <= set(action_time)
     for e in events:
         t = action_time[e.episode, e.step]
-        assert t < e.time <= t + 0.3 + 1e-9 and (
-            e.source.endswith("paused") or e.time == pytest.approx(t + 0.3)
-        )
+        at_step = e.time / 0.2 == pytest.approx(round(e.time / 0.2))
+        assert t < e.time <= t + 0.3 + 1e-9 and (e.time == pytest.approx(t + 0.3) or at_step), (e, t)
 
     # the frames: the task's own rendering, in no other domain's words; the page's curve has its own axes
     frame = said["frames"][-1]
@@ -149,6 +161,13 @@ def test_each_acknowledged_press_on_cartpole_is_logged_once_under_the_step_it_wa
     assert said["config"]["view"] == "gym" and said["config"]["task"] == "CartPole-v1"
     assert end["resume"] == f"python train.py resume={tmp_path}"  # finished by the person: nothing to add
     assert (tmp_path / "teaching_summary.json").exists() and learner.teaching.session.ending == "finishing"
+
+    # resumed: the presses are numbered on, and the watched board's episodes go on from where they were
+    episodes = learner.watcher.episode
+    again, _, more = _taught(run_learner, tmp_path, 1, checkpoint=load_checkpoint(tmp_path))
+    events = [e for e in load_feedback_log(tmp_path / "feedback.jsonl") if e.session.endswith("/browser")]
+    assert [e.seq for e in events] == list(range(15)) and more["end"]["given"] == 1
+    assert events[-1].episode == more["acks"][0]["episode"] >= episodes and again.watcher.episode >= episodes
 
 
 def test_frames_larger_than_the_page_shows_are_scaled_down() -> None:

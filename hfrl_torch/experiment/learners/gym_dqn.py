@@ -179,7 +179,7 @@ class GymDQN(DeepQLearner):
         if self.teaching is not None:
             wait = float(self.cfg.trainer.wait_for_page_s)
             tqdm.write(f"Teach the agent in your browser: {self.teaching.url}", file=sys.stderr)
-            if wait > 0 and not self.resumed:
+            if wait > 0:  # a resumed run too: nobody teaches it until the page opens
                 tqdm.write(f"Waiting up to {wait:g} s for the page to open...", file=sys.stderr)
                 if not self.teaching.session.wait_for_page(wait):
                     tqdm.write(
