@@ -16,7 +16,6 @@ is made with ``render_mode="rgb_array"`` and shown on the page after every step,
 
 from __future__ import annotations
 
-import sys
 from functools import cached_property
 from pathlib import Path
 from typing import Any, ClassVar
@@ -26,7 +25,6 @@ from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase, RewardSum, StepCounter, TransformedEnv
 from torchrl.envs.transforms import Compose, Transform
-from tqdm import tqdm
 
 from hfrl_torch import keys
 from hfrl_torch.agents.dqn import DeepQ, HumanValues
@@ -115,6 +113,7 @@ class GymDQN(DeepQLearner):
 
     @property
     def seconds_per_step(self) -> float:
+        """The simulated clock's time per env step (``domain.seconds_per_step``), which H^ credits on."""
         return float(self.cfg.domain.seconds_per_step)
 
     @cached_property
@@ -176,15 +175,8 @@ class GymDQN(DeepQLearner):
 
     def start(self, logger: Logger) -> None:
         super().start(logger)
-        if self.teaching is not None:
-            wait = float(self.cfg.trainer.wait_for_page_s)
-            tqdm.write(f"Teach the agent in your browser: {self.teaching.url}", file=sys.stderr)
-            if wait > 0:  # a resumed run too: nobody teaches it until the page opens
-                tqdm.write(f"Waiting up to {wait:g} s for the page to open...", file=sys.stderr)
-                if not self.teaching.session.wait_for_page(wait):
-                    tqdm.write(
-                        "No page opened: learning from the task alone until one does.", file=sys.stderr
-                    )
+        if self.teaching is not None:  # a resumed run waits too: nobody teaches it until the page opens
+            self.teaching.announce(float(self.cfg.trainer.wait_for_page_s), "learning from the task alone")
 
     def advance(self) -> list[Point]:
         points = super().advance()
