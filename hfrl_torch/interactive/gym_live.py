@@ -49,7 +49,7 @@ from hfrl_torch.trainers.queue_trainer import QueueTrainer
 __all__ = ["BrowserGymTrainer", "FrameKeeper", "GymWatcher", "png_data_url"]
 
 UNPACED_FRAME_S = 0.2  # wall seconds between frames while the page is open and the person away
-PROGRESS_S = 1.0  # wall seconds between the page's updates of what is left
+PROGRESS_S = 1.0  # wall seconds over which the pace of the time left is measured
 MAX_SIDE = 640  # frames larger than this on a side are scaled down to it (aspect kept)
 # zlib level: CartPole's 600 x 400 frame in 28 ms and 5 kB on this 2-core machine at load average 9 (level
 # 6: 58 ms and 2.3 kB; level 1 no faster than 3)
@@ -172,7 +172,8 @@ class GymWatcher(Transform):
         self.frames = 0
         self.steps = self.taught = 0  # steps since the last point of the curve, and those a person taught
         self._last_frame = -float("inf")
-        self._progress_at: tuple[float, float] | None = None  # (wall, steps done) of the last update
+        self._progress_at: tuple[float, float] | None = None  # (wall, steps done) where the pace was measured
+        self._rate: float | None = None  # steps per wall second over the last second or more
         session.set_live(False)  # nothing to judge before the first frame
 
     def watch(self, env: gym.Env) -> FrameKeeper:
@@ -238,22 +239,21 @@ class GymWatcher(Transform):
         self._progress(sim / self.seconds_per_step + 1)
 
     def _progress(self, done: float) -> None:
-        """Tell the page the steps left of board 0, about once a second, and how long they take at the pace
-        of the last second."""
+        """Tell the page the steps of board 0 done and left with each frame (never behind the frame), and
+        how long those left take at the pace measured over the last second or more."""
         wall = self.session.clock()
-        if self._progress_at is not None and wall - self._progress_at[0] < PROGRESS_S:
-            return
-        rate = None
-        if self._progress_at is not None and wall > self._progress_at[0]:
-            rate = (done - self._progress_at[1]) / (wall - self._progress_at[0])
-        self._progress_at = (wall, done)
+        if self._progress_at is None:
+            self._progress_at = (wall, done)
+        elif wall - self._progress_at[0] >= PROGRESS_S:
+            self._rate = (done - self._progress_at[1]) / (wall - self._progress_at[0])
+            self._progress_at = (wall, done)
         left = max(self.total_steps - round(done), 0)
         self.session.set_progress(
             unit="steps",
             done=min(round(done), self.total_steps),
             total=self.total_steps,
             left=left,
-            left_s=left / rate if rate else None,
+            left_s=left / self._rate if self._rate else None,
         )
 
     def taught_share(self) -> float:

@@ -87,6 +87,7 @@ def test_a_gym_page_shows_the_tasks_frames_in_its_own_words_and_stops_on_ctrl_c(
             pressed = page.inner_text("#last-press")
             filed = re.fullmatch(r"Good → action ([01]) at step (\d+) of episode (\d+)", pressed)
             assert filed, pressed
+            (tmp_path / "teaching.png").write_bytes(page.screenshot())
             page.set_viewport_size({"width": 390, "height": 900})
             page.wait_for_timeout(50)
             layout = page.evaluate(LAYOUT)

@@ -133,7 +133,7 @@ class GymDQN(DeepQLearner):
         e = self.cfg.agent.eval_episodes
         info = {
             "task": self.task.label,
-            "curve_x": "env steps (all boards)",
+            "curve_x": f"env steps, all {self.boards} copies of the task",
             "curve_y": "greedy return per episode",
             "curve_note": f"Return of the greedy policy, mean of {e} test episodes",
         }
