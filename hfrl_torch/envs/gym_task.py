@@ -8,22 +8,31 @@ frames/s and started in 0.4 s; ``SerialEnv`` of 8 ``GymEnv`` 430-460 frames/s; `
 (gymnasium's asynchronous vector env, a process per copy) about 1270 frames/s once started but took
 minutes to start its 8 workers on 2 busy cores, so the synchronous vector env is the one used. A user's
 unbatched ``EnvBase`` runs as B copies in a ``SerialEnv``.
+
+A person watching the task in the browser (``trainer=interactive``) sees board 0 rendered as RGB frames:
+:meth:`GymTask.make_watched` makes that copy with ``render_mode="rgb_array"`` (or checks that the user's
+callable did) and ``make_gym_batch(..., first=)`` plays it as board 0; :func:`first_frame` renders one
+frame to check that the task can be shown at all.
 """
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 import gymnasium as gym
+import numpy as np
 import torch
 from torchrl.data import Categorical
 from torchrl.envs import EnvBase, GymWrapper, SerialEnv
 
 from hfrl_torch import keys
 
-__all__ = ["GymTask", "TaskSpaces", "make_gym_batch", "task_spaces"]
+__all__ = ["RGB", "GymTask", "TaskSpaces", "first_frame", "make_gym_batch", "task_spaces"]
+
+RGB = "rgb_array"  # the render mode whose frames the browser trainer shows
 
 
 @dataclass(frozen=True)
@@ -58,6 +67,31 @@ class GymTask:
             extra["max_episode_steps"] = int(self.max_episode_steps)
         return gym.make(str(self.env_id), **extra)
 
+    def make_watched(self) -> gym.Env:
+        """One instance that renders its frames as RGB arrays (``render_mode="rgb_array"``), for a person to
+        watch: a registered id is made so; a callable must return a Gymnasium env made so. ``ValueError``
+        saying why not (the instance closed) otherwise."""
+        # frames drawn off screen need no window or sound: without these, pygame's SDL probes the display and
+        # sound devices (and prints errors) on a machine without them; a value of the user's is kept
+        os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
+        os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
+        if self.make is None:
+            extra = dict(self.kwargs)
+            if self.max_episode_steps is not None:
+                extra["max_episode_steps"] = int(self.max_episode_steps)
+            try:
+                env = gym.make(str(self.env_id), render_mode=RGB, **extra)
+            except TypeError:  # an env of the old API, which takes no render_mode
+                raise ValueError(f"cannot be made with render_mode={RGB!r}") from None
+        else:
+            env = self.make()
+        why = _not_rgb(env)
+        if why is not None:
+            if hasattr(env, "close"):
+                env.close()
+            raise ValueError(why)
+        return env
+
 
 @dataclass(frozen=True)
 class TaskSpaces:
@@ -82,6 +116,40 @@ def _gym_spaces(env: gym.Env) -> TaskSpaces:
     high = torch.as_tensor(obs.high, dtype=torch.float32)
     sample = torch.stack([torch.as_tensor(env.reset(seed=i)[0], dtype=torch.float32) for i in (0, 1)])
     return TaskSpaces(int(obs.shape[0]), int(act.n), low, high, sample)
+
+
+def _not_rgb(env: Any) -> str | None:
+    """Why ``env`` cannot show a person RGB frames (None: it can)."""
+    if not isinstance(env, gym.Env):
+        return (
+            f"returned a {type(env).__name__}: the browser trainer shows a Gymnasium env's frames "
+            f"(render_mode={RGB!r})"
+        )
+    modes = list(env.metadata.get("render_modes", []))
+    if RGB not in modes:
+        return (
+            f"renders no RGB frames (its render modes: {modes or 'none'}); the browser trainer needs {RGB!r}"
+        )
+    if env.render_mode != RGB:
+        return (
+            f"was made with render_mode={env.render_mode!r}; the browser trainer needs render_mode={RGB!r} "
+            f"(e.g. gym.make(..., render_mode={RGB!r}))"
+        )
+    return None
+
+
+def first_frame(env: gym.Env) -> np.ndarray:
+    """The frame ``env`` (made with ``render_mode="rgb_array"``) renders after ``reset(seed=0)``: [H, W, 3]
+    uint8; ``ValueError`` naming what it rendered instead."""
+    env.reset(seed=0)
+    frame = env.render()
+    shape = getattr(frame, "shape", None)
+    if not isinstance(frame, np.ndarray) or frame.dtype != np.uint8 or frame.ndim != 3 or shape[2] != 3:
+        what = f"an array of shape {list(shape)} and type {frame.dtype}" if shape is not None else repr(frame)
+        raise ValueError(f"rendered {what[:80]}; the browser trainer shows [height, width, 3] uint8 frames")
+    if min(shape[:2]) < 1:
+        raise ValueError(f"rendered an empty frame of shape {list(shape)}")
+    return frame
 
 
 def _space_kind(space: Any) -> str:
@@ -125,10 +193,13 @@ def task_spaces(task: GymTask) -> TaskSpaces:
             env.close()
 
 
-def make_gym_batch(task: GymTask, boards: int, seed: int | None = None) -> EnvBase:
+def make_gym_batch(
+    task: GymTask, boards: int, seed: int | None = None, first: gym.Env | None = None
+) -> EnvBase:
     """``boards`` instances of ``task`` as one TorchRL env with ``batch_size=[boards]`` and index actions
-    (the module docstring says how), seeded when ``seed`` is given."""
-    first = task.make_one()
+    (the module docstring says how), seeded when ``seed`` is given; ``first``: an instance already made to
+    play as board 0 (the one a person watches, :meth:`GymTask.make_watched`)."""
+    first = task.make_one() if first is None else first
     if isinstance(first, EnvBase):
         first.close()  # SerialEnv makes its own from the factory
         env = SerialEnv(boards, task.make_one)

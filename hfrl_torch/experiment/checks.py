@@ -23,7 +23,7 @@ from hfrl_torch.agents.sarsa.sarsa import trace_capacity
 from hfrl_torch.common.checkpoint import load_checkpoint
 from hfrl_torch.common.errors import CheckpointError, ConfigError
 from hfrl_torch.common.validation import require_bool, require_choice, require_float, require_int
-from hfrl_torch.envs.gym_task import TaskSpaces, task_spaces
+from hfrl_torch.envs.gym_task import TaskSpaces, first_frame, task_spaces
 from hfrl_torch.envs.keepaway.params import (
     DECISION_TIMINGS,
     HOLD_RULES,
@@ -530,8 +530,9 @@ def check_keepaway_feedback(cfg: DictConfig) -> None:
 # ------------------------------------------------------------------------- deep learners
 
 
-def check_dqn(cfg: DictConfig) -> None:
-    """DQN in either domain: its budget, network and exploration, and the trainer's presence."""
+def check_dqn(cfg: DictConfig, page: bool = False) -> None:
+    """DQN in any domain: its budget, network and exploration, and the trainer's presence (``page``: the
+    domain has a browser trainer's page, so ``trainer=interactive`` is allowed)."""
     a = "agent."
     require_int(cfg, a + "frames", 1)
     require_int(cfg, a + "boards", 1, 4096)
@@ -556,10 +557,11 @@ def check_dqn(cfg: DictConfig) -> None:
             f"fusion={fusion!r} fuses a trainer's H^ with the DQN's Q; choose a trainer: oracle, replay "
             "(or fusion=none)"
         )
-    if trainer == "interactive":
+    if trainer == "interactive" and not page:
         raise ConfigError(
-            "trainer=interactive with agent=dqn: the browser trainer teaches agent=cem (Tetris) and "
-            "agent=sarsa (keepaway); agent=dqn takes a simulated trainer or a replay"
+            f"trainer=interactive with agent=dqn on domain={cfg.domain.name}: the browser trainer teaches "
+            "agent=cem (Tetris), agent=sarsa (keepaway) and agent=dqn on domain=gym; here agent=dqn takes a "
+            "simulated trainer or a replay"
         )
     if trainer != "none" and OmegaConf.select(cfg, "trainer.leave_after") is not None:
         raise ConfigError("trainer.leave_after is not available with agent=dqn yet; allowed: null")
@@ -660,7 +662,7 @@ def check_keepaway_feedback_trainer(cfg: DictConfig) -> None:
 
 # ------------------------------------------------------------------------------- gym
 
-GYM_TRAINERS = ("none", "oracle", "replay")
+GYM_TRAINERS = ("none", "oracle", "replay", "interactive")
 
 
 def _task_key(cfg: DictConfig) -> str:
@@ -718,9 +720,9 @@ def check_gym_evaluation(cfg: DictConfig) -> None:
 
 
 def check_gym_dqn(cfg: DictConfig) -> None:
-    """DQN on any task: H^ (Deep TAMER on the observation), and the oracle against ``trainer.reference`` or a
-    replayed log."""
-    check_dqn(cfg)
+    """DQN on any task: H^ (Deep TAMER on the observation), and the oracle against ``trainer.reference``, a
+    replayed log or a person in the browser."""
+    check_dqn(cfg, page=True)
     if cfg.trainer.name != "none":
         check_gym_trainer(cfg, GYM_TRAINERS)
 
@@ -758,6 +760,10 @@ def check_gym_trainer(cfg: DictConfig, allowed: Sequence[str]) -> None:
         )
     require_choice(cfg, "human.name", ("mlp",))
     check_mlp_human(cfg, placements=False)
+    if trainer == "interactive":
+        check_interactive(cfg)
+        check_gym_frames(cfg)
+        return
     if trainer == "replay":
         check_replay_log(cfg)
     else:
@@ -767,6 +773,23 @@ def check_gym_trainer(cfg: DictConfig, allowed: Sequence[str]) -> None:
     require_float(cfg, "trainer.reaction", 1e-6)
     if require_bool(cfg, "trainer.timing.enabled"):
         check_timing(cfg, tetris=False)
+
+
+def check_gym_frames(cfg: DictConfig) -> None:
+    """``trainer=interactive`` on ``domain=gym``: the task renders RGB frames for the page (a registered id
+    made with ``render_mode="rgb_array"``, or a callable's env made so), tried once."""
+    where = f"{_task_key(cfg)} cannot be shown in the browser"
+    env = None
+    try:
+        env = make_gym_task(cfg).make_watched()
+        first_frame(env)
+    except ValueError as exc:
+        raise ConfigError(f"{where}: it {_first(exc)}") from None
+    except Exception as exc:  # making or rendering may fail in any way (gymnasium's: a missing pygame)
+        raise ConfigError(f"{where}: rendering a frame failed: {type(exc).__name__}: {_first(exc)}") from None
+    finally:
+        if env is not None:
+            env.close()
 
 
 def check_gym_reference(cfg: DictConfig) -> None:

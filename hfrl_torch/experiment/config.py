@@ -27,6 +27,7 @@ RESUMABLE = (
     "agent.hours",
     "agent.episodes",
     "agent.games",
+    "agent.frames",  # the DQN learners' budget (the browser trainer's summary offers more of it)
     "threads",
     "device",
     "domain.kernels",

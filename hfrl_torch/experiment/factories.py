@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -44,6 +44,7 @@ from hfrl_torch.fusion.fusion import Fusion
 from hfrl_torch.fusion.schedules import ConstantWeight
 from hfrl_torch.fusion.weights import make_weight
 from hfrl_torch.interactive.explain import WEIGHT_NAME, weight_sentence
+from hfrl_torch.interactive.gym_live import BrowserGymTrainer
 from hfrl_torch.interactive.journal import JOURNAL_NAME, PressJournal
 from hfrl_torch.interactive.keepaway_live import BrowserKeeperTrainer
 from hfrl_torch.interactive.live import DEFAULT_SPEED, KEY_NAMES, LiveTeaching
@@ -301,19 +302,27 @@ def make_keeper_trainer(
     )
 
 
+LiveTrainer = BrowserTetrisTrainer | BrowserKeeperTrainer | BrowserGymTrainer
+
+
 def make_live_teaching(
     cfg: DictConfig,
     view: str,
     fusion: Fusion,
-    drain: Callable[[TeachingSession], BrowserTetrisTrainer | BrowserKeeperTrainer],
+    drain: Callable[[TeachingSession], LiveTrainer],
+    speed: float | None = None,
+    info: Mapping[str, Any] | None = None,
 ) -> LiveTeaching:
-    """The browser trainer's page server for ``view`` (tetris or keepaway), started, with ``drain``'s trainer
-    taking the presses off the session and logging them; with a log, each press is journaled on disk before
-    the page is told it was taken, and a killed run's presses the log lacks are logged now (``journal.py``).
-    The page says what sets ``fusion``'s weight in its own words, unless ``trainer.blind`` (a study's
-    participant): then no message names the fusion or carries its weight."""
+    """The browser trainer's page server for ``view`` (tetris, keepaway or gym), started, with ``drain``'s
+    trainer taking the presses off the session and logging them; with a log, each press is journaled on disk
+    before the page is told it was taken, and a killed run's presses the log lacks are logged now
+    (``journal.py``). The page says what sets ``fusion``'s weight in its own words, unless ``trainer.blind``
+    (a study's participant): then no message names the fusion or carries its weight. ``speed``: the
+    starting speed when ``trainer.actions_per_s`` is null (None: the view's ``DEFAULT_SPEED``); ``info``:
+    what else the page is told once (e.g. the words of its curve's axes)."""
     t = cfg.trainer
-    speed = DEFAULT_SPEED[view] if t.actions_per_s is None else float(t.actions_per_s)
+    default = DEFAULT_SPEED[view] if speed is None else speed
+    speed = default if t.actions_per_s is None else float(t.actions_per_s)
     reaction = OmegaConf.select(t, "reaction_s", default=None)  # runs saved before it existed: REACTION_S
     blind = bool(OmegaConf.select(t, "blind", default=False))  # runs saved before it existed: not blind
     session = TeachingSession(
@@ -323,8 +332,9 @@ def make_live_teaching(
         blind=blind,
     )
     session.set_live(False)  # nothing to judge until the learner shows its game (start-up takes seconds)
+    session.info = dict(info or {})
     if not blind:
-        session.info = {
+        session.info |= {
             "weight_name": WEIGHT_NAME,
             "weight_sentence": weight_sentence(str(cfg.fusion.name), fusion.describe_weight, view),
         }
@@ -365,23 +375,26 @@ def make_feedback_wiring(
     run_dir: Path,
     fusion: Fusion,
     simulated: Callable[[FeedbackLog], Any],
-    live: Callable[[TeachingSession, FeedbackLog], BrowserTetrisTrainer | BrowserKeeperTrainer] | None = None,
+    live: Callable[[TeachingSession, FeedbackLog], LiveTrainer] | None = None,
     view: str = "tetris",
     boards: int | None = None,
     fsync_simulated: bool = True,
+    speed: float | None = None,
+    info: Mapping[str, Any] | None = None,
 ) -> FeedbackWiring:
     """The feedback wiring of every learner with a trainer, built in one place: the run's
     ``feedback.jsonl`` (a person's presses are fsync'd one by one, as they cannot be regenerated; simulated
     events where ``fsync_simulated``), the trainer (``live``'s drain of the page for ``trainer=interactive``,
-    else ``simulated``'s), a channel of ``boards`` boards (None: the learner's transform keeps its own) and
-    the trainer's departure."""
+    with the page's ``view``, starting ``speed`` and ``info``: :func:`make_live_teaching`; else
+    ``simulated``'s), a channel of ``boards`` boards (None: the learner's transform keeps its own) and the
+    trainer's departure."""
     person = cfg.trainer.name == "interactive"
     log = FeedbackLog(run_dir / "feedback.jsonl", session=run_dir.name, fsync=person or fsync_simulated)
     teaching = None
     if person:
         if live is None:
             raise ValueError(f"trainer=interactive has no page for view {view!r}")
-        teaching = make_live_teaching(cfg, view, fusion, lambda session: live(session, log))
+        teaching = make_live_teaching(cfg, view, fusion, lambda session: live(session, log), speed, info)
         trainer = teaching.trainer
     else:
         trainer = simulated(log)

@@ -24,8 +24,12 @@ _ROLE = {
 
 
 # what an episode is judged by, and what it is called, on each domain's page
-_SCORE = {"tetris": "the lines of its games", "keepaway": "how long the keepers kept the ball"}
-_EPISODE = {"tetris": "game", "keepaway": "episode"}
+_SCORE = {
+    "tetris": "the lines of its games",
+    "keepaway": "how long the keepers kept the ball",
+    "gym": "the return of its episodes",
+}
+_EPISODE = {"tetris": "game", "keepaway": "episode", "gym": "episode"}
 
 
 def weight_sentence(scheme: str, describe: Callable[[str, str], str], domain: str) -> str:

@@ -34,7 +34,6 @@ at the current pace. Opening the page, or "I'm here", brings back the pacing and
 from __future__ import annotations
 
 import math
-import sys
 from collections import deque
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
@@ -43,7 +42,6 @@ import torch
 from omegaconf import DictConfig
 from tensordict import TensorDictBase
 from torch import Tensor
-from tqdm import tqdm
 
 from hfrl_torch import keys
 from hfrl_torch.common.errors import CheckpointError
@@ -366,9 +364,4 @@ class KeepawayWatcher:
 
 def wait_for_teacher(cfg: DictConfig, teaching: LiveTeaching) -> None:
     """Print the page's URL to stderr and wait up to ``trainer.wait_for_page_s`` for it to open."""
-    wait = float(cfg.trainer.wait_for_page_s)
-    tqdm.write(f"Teach the agent in your browser: {teaching.url}", file=sys.stderr)
-    if wait > 0:
-        tqdm.write(f"Waiting up to {wait:g} s for the page to open...", file=sys.stderr)
-        if not teaching.session.wait_for_page(wait):
-            tqdm.write("No page opened: the keepers learn on their own until one does.", file=sys.stderr)
+    teaching.announce(float(cfg.trainer.wait_for_page_s), "the keepers learn on their own")

@@ -9,6 +9,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from tqdm import tqdm
+
 from hfrl_torch.common.checkpoint import LAST
 from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.interactive.server import TeachingServer
@@ -46,6 +48,15 @@ class LiveTeaching:
     @property
     def url(self) -> str:
         return self.server.url
+
+    def announce(self, wait_s: float, alone: str) -> None:
+        """Print the page's URL to stderr and wait up to ``wait_s`` seconds for a page to open; ``alone``
+        says what the run does meanwhile when none did ("learning from the game alone")."""
+        tqdm.write(f"Teach the agent in your browser: {self.url}", file=sys.stderr)
+        if wait_s > 0:
+            tqdm.write(f"Waiting up to {wait_s:g} s for the page to open...", file=sys.stderr)
+            if not self.session.wait_for_page(wait_s):
+                tqdm.write(f"No page opened: {alone} until one does.", file=sys.stderr)
 
     @property
     def finish_requested(self) -> bool:

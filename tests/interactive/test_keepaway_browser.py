@@ -190,7 +190,7 @@ def test_a_taught_loop_learns_from_presses_at_real_time(tmp_path, monkeypatch, r
     monkeypatch.setattr(  # not served
         factories,
         "make_live_teaching",
-        lambda cfg, view, fusion, drain: LiveTeaching(
+        lambda cfg, view, fusion, drain, *page: LiveTeaching(
             TeachingServer(session, port=0), session, drain(session)
         ),
     )
@@ -244,7 +244,7 @@ def test_finish_from_the_page_ends_the_keepers_run_with_a_checkpoint(tmp_path, m
     session.sleep = sleep
     session.connect()
 
-    def live(cfg, view, fusion, drain):
+    def live(cfg, view, fusion, drain, *page):
         page = LiveTeaching(TeachingServer(session, port=0), session, drain(session))
         monkeypatch.setattr(page, "stop", lambda reason, saved: ended.append((reason, saved)) or 0)
         return page

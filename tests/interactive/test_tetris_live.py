@@ -171,7 +171,7 @@ def test_a_taught_ce_round_files_each_press_under_the_placement_shown_before_it(
     session.connect()
     made = {}
 
-    def live(cfg, view, fusion, drain):
+    def live(cfg, view, fusion, drain, *page):  # page: the starting speed and words, unused here
         made["teaching"] = LiveTeaching(TeachingServer(session, port=0), session, drain(session))
         return made["teaching"]
 

@@ -45,12 +45,13 @@ from hfrl_torch.agents.dqn import ChosenEstimate, DeepQ, HumanValues, HumanValue
 from hfrl_torch.common.logger import Logger
 from hfrl_torch.common.seeding import component_seed
 from hfrl_torch.common.stats import summarize
-from hfrl_torch.experiment.factories import make_feedback_wiring, make_fusion
+from hfrl_torch.experiment.factories import FeedbackWiring, make_feedback_wiring, make_fusion
 from hfrl_torch.experiment.learners.tetris_games import TRAINER_LABELS
 from hfrl_torch.experiment.run import Learner, Point, WallClockSaves
 from hfrl_torch.feedback.log import FeedbackLog
 from hfrl_torch.fusion.fusion import Fusion
 from hfrl_torch.fusion.transform import FeedbackFusion, FusionModule
+from hfrl_torch.interactive.live import LiveTeaching
 
 SAVE_EVERY_S = 10.0  # wall seconds between checkpoints
 
@@ -77,9 +78,10 @@ class DeepQLearner(Learner):
         self.dqn = self.make_dqn()
         self.human: HumanValues | None = self.make_human() if self.taught else None
         self.feedback_transform = None
+        self.teaching: LiveTeaching | None = None
         if self.taught:  # the trainer's transform keeps its own channel: its boards are the env's
-            wiring = make_feedback_wiring(cfg, run_dir, self.fusion, self.make_trainer, fsync_simulated=False)
-            self.log = wiring.log
+            wiring = self.make_wiring(run_dir)
+            self.log, self.teaching = wiring.log, wiring.teaching
             self.feedback_transform = self.make_feedback(wiring.trainer)
         self.reward_fusion = FeedbackFusion(self.fusion, estimate_key=keys.HUMAN_REWARD_ESTIMATE)
         parts = [*self.domain_transforms(), *filter(None, [self.feedback_transform]), self.reward_fusion]
@@ -146,6 +148,11 @@ class DeepQLearner(Learner):
     def make_trainer(self, log: FeedbackLog) -> Any:
         """The simulated (or replayed) trainer of ``trainer``, logging to ``log``."""
 
+    def make_wiring(self, run_dir: Path) -> FeedbackWiring:
+        """The run's feedback wiring (``make_feedback_wiring``): the log and :meth:`make_trainer`'s trainer. A
+        domain whose page a person teaches on (``trainer=interactive``) passes its page's trainer too."""
+        return make_feedback_wiring(self.cfg, run_dir, self.fusion, self.make_trainer, fsync_simulated=False)
+
     @abstractmethod
     def make_feedback(self, trainer: Any) -> Transform:
         """``trainer`` as a transform (writes ``keys.FEEDBACK*`` and ``keys.CLOCK`` into ``next``)."""
@@ -208,22 +215,32 @@ class DeepQLearner(Learner):
     def description(self) -> str:
         return f"DQN {self.domain}" + (f" + {self.cfg.fusion.name}" if self.taught else "")
 
+    @property
+    def who(self) -> str:
+        """Who gives the feedback, for the run's TensorBoard text."""
+        if self.teaching is not None:
+            return "human:browser: a PERSON teaching in the browser (trainer=interactive), watching board 0"
+        label = TRAINER_LABELS.get(self.cfg.trainer.name, self.cfg.trainer.name)
+        return f"{label} (a simulated or replayed trainer, not a person), one per board"
+
     def start(self, logger: Logger) -> None:
         self.logger = logger
         if self.taught and not self.resumed:
-            logger.text(
-                "trainer",
-                f"{TRAINER_LABELS.get(self.cfg.trainer.name, self.cfg.trainer.name)} (a simulated or "
-                f"replayed trainer, not a person), one per board; fusion={self.cfg.fusion.name}, "
-                f"human={self.cfg.human.name}",
-            )
+            logger.text("trainer", f"{self.who}; fusion={self.cfg.fusion.name}, human={self.cfg.human.name}")
+
+    @property
+    def ending(self) -> bool:
+        """Whether the page asked the run to end (Finish and save, or Ctrl-C): the chunk ends at once."""
+        return self.teaching is not None and self.teaching.session.ending is not None
 
     def advance(self) -> list[Point]:
         if self.points == 0 and not self.resumed and self.frames == 0:
             return [self._point()]  # the untrained policy: where every curve starts
         goal = min(self.frames_total, (self.points) * self.eval_every)
-        while self.frames < goal:
+        while self.frames < goal and not self.ending:
             self._learn_batch(next(self.batches))
+        if self.frames < goal:  # ended early: the checkpoint keeps the frames; resumed, the chunk goes on
+            return []
         return [self._point()]
 
     def _learn_batch(self, batch: TensorDictBase) -> None:
@@ -375,7 +392,17 @@ class DeepQLearner(Learner):
     def hparam_metrics(self, final: dict[str, Any]) -> dict[str, float]:
         return {f"hparam/{self.score_key.split('/')[-1]}": final[f"{self.score_key}_mean"]}
 
+    @property
+    def stop_requested(self) -> bool:
+        return self.teaching is not None and self.teaching.finish_requested
+
+    def interrupted(self) -> None:
+        if self.teaching is not None:  # the browser trainer: the chunk's last steps are not paced
+            self.teaching.session.request_stop()
+
     def close(self) -> None:
         self.collector.shutdown()
+        if self.teaching is not None:
+            self.teaching.end(self.done, self.run_dir, "agent.frames", 2 * self.frames_total)
         if self.log is not None:
             self.log.close()

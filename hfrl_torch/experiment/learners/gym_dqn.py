@@ -8,11 +8,16 @@ credited over the simulated clock (``domain.seconds_per_step`` per step). TorchR
 each episode's steps (the events' ``step``) and ``RewardSum`` keeps its return, before any reward-level
 fusion: each ended episode's return ends the fusion's episode (the trust factor, the bandit). The points are
 the greedy policy's mean return on ``agent.eval_episodes`` fresh episodes, the same seeds at every point.
+
+With ``trainer=interactive`` a person teaches from the browser instead (``interactive/gym_live.py``): board 0
+is made with ``render_mode="rgb_array"`` and shown on the page after every step, paced to the page's speed
+(``domain.seconds_per_step`` a step by default), and the presses are credited on the same simulated clock.
 """
 
 from __future__ import annotations
 
 from functools import cached_property
+from pathlib import Path
 from typing import Any, ClassVar
 
 import torch
@@ -24,13 +29,24 @@ from torchrl.envs.transforms import Compose, Transform
 from hfrl_torch import keys
 from hfrl_torch.agents.dqn import DeepQ, HumanValues
 from hfrl_torch.agents.policies import export_policy
+from hfrl_torch.common.logger import Logger
 from hfrl_torch.common.seeding import component_seed
 from hfrl_torch.common.stats import summarize
 from hfrl_torch.envs.gym_task import GymTask, TaskSpaces, make_gym_batch
 from hfrl_torch.experiment.checks import check_gym_dqn, gym_spaces
-from hfrl_torch.experiment.factories import make_deep_tamer, make_dqn, make_gym_task, make_gym_trainer
+from hfrl_torch.experiment.factories import (
+    FeedbackWiring,
+    make_deep_tamer,
+    make_dqn,
+    make_feedback_wiring,
+    make_gym_task,
+    make_gym_trainer,
+)
 from hfrl_torch.experiment.learners.deep_q import DeepQLearner
+from hfrl_torch.experiment.run import Point
 from hfrl_torch.feedback.log import FeedbackLog
+from hfrl_torch.interactive.gym_live import BrowserGymTrainer, GymWatcher
+from hfrl_torch.interactive.messages import MAX_SPEED, MIN_SPEED
 from hfrl_torch.models.mlp import ActionMLP
 from hfrl_torch.trainers import Trainer
 from hfrl_torch.trainers.transform import HumanFeedback
@@ -84,6 +100,11 @@ class GymDQN(DeepQLearner):
     def check(cls, cfg: DictConfig) -> None:
         check_gym_dqn(cfg)
 
+    def __init__(self, cfg: DictConfig, run_dir: Path, checkpoint: dict[str, Any] | None = None) -> None:
+        super().__init__(cfg, run_dir, checkpoint)
+        if checkpoint is not None and self.watcher is not None:
+            self.watcher.set_extra_state(checkpoint["state"].get("page", {"episode": 0}))
+
     human_in_keys: ClassVar[list[Any]] = [keys.OBSERVATION]
     score_key = SCORE_KEY
     score_unit = "return per episode"
@@ -101,11 +122,50 @@ class GymDQN(DeepQLearner):
     def scale(self) -> list[float]:
         return input_scale(self.spaces)
 
+    @property
+    def seconds_per_step(self) -> float:
+        """The simulated clock's time per env step (``domain.seconds_per_step``), which H^ credits on."""
+        return float(self.cfg.domain.seconds_per_step)
+
+    @cached_property
+    def watcher(self) -> GymWatcher | None:
+        """What shows board 0 on a person's page and paces it (None: nobody teaches in the browser)."""
+        if self.teaching is None:
+            return None
+        steps = -(-self.frames_total // self.boards)
+        return GymWatcher(
+            self.teaching.session, self.seconds_per_step, steps, lambda: self.fusion.weight()[0]
+        )
+
+    def make_wiring(self, run_dir: Path) -> FeedbackWiring:
+        """The feedback wiring, with the page for ``trainer=interactive``: it starts at one step per
+        ``domain.seconds_per_step`` (within the page's speeds), so that the page and the simulated clock keep
+        pace, and names the task and its curve's axes."""
+        e = self.cfg.agent.eval_episodes
+        info = {
+            "task": self.task.label,
+            "curve_x": f"env steps, all {self.boards} copies of the task",
+            "curve_y": "greedy return per episode",
+            "curve_note": f"Return of the greedy policy, mean of {e} test episodes",
+        }
+        return make_feedback_wiring(
+            self.cfg,
+            run_dir,
+            self.fusion,
+            self.make_trainer,
+            lambda session, log: BrowserGymTrainer(session, log),
+            view="gym",
+            fsync_simulated=False,
+            speed=min(max(1.0 / self.seconds_per_step, MIN_SPEED), MAX_SPEED),
+            info=info,
+        )
+
     def make_env(self, boards: int, seed: int) -> EnvBase:
-        return make_gym_batch(self.task, boards, seed)
+        first = None if self.watcher is None else self.watcher.watch(self.task.make_watched())
+        return make_gym_batch(self.task, boards, seed, first=first)
 
     def domain_transforms(self) -> list[Transform]:
-        return [StepCounter(), RewardSum()]
+        return [StepCounter(), RewardSum(), *filter(None, [self.watcher])]
 
     def make_dqn(self) -> DeepQ:
         q = observation_mlp(self.spaces, list(self.cfg.agent.cells), self.scale)
@@ -119,10 +179,29 @@ class GymDQN(DeepQLearner):
         return make_gym_trainer(self.cfg, self.spaces.actions, log)
 
     def make_feedback(self, trainer: Trainer) -> Transform:
-        return HumanFeedback(trainer, float(self.cfg.domain.seconds_per_step), score_key=keys.EPISODE_REWARD)
+        return HumanFeedback(trainer, self.seconds_per_step, score_key=keys.EPISODE_REWARD)
 
     def watched_seconds(self, nxt: TensorDictBase) -> float:
-        return self.boards * float(self.cfg.domain.seconds_per_step)
+        return (1 if self.teaching is not None else self.boards) * self.seconds_per_step
+
+    def start(self, logger: Logger) -> None:
+        super().start(logger)
+        if self.teaching is not None:  # a resumed run waits too: nobody teaches it until the page opens
+            self.teaching.announce(float(self.cfg.trainer.wait_for_page_s), "learning from the task alone")
+
+    def advance(self) -> list[Point]:
+        points = super().advance()
+        if self.watcher is not None:  # the page's curve: each point with the share of its steps taught
+            share = self.watcher.taught_share()
+            for p in points:
+                self.teaching.session.add_point(p.step, p.record[f"{self.score_key}_mean"], share)
+        return points
+
+    def checkpoint(self) -> dict[str, Any]:
+        out = super().checkpoint()
+        if self.watcher is not None:
+            out["state"]["page"] = self.watcher.get_extra_state()
+        return out
 
     def episode_performance(self, nxt: TensorDictBase) -> torch.Tensor:
         return nxt[keys.EPISODE_REWARD].reshape(-1).to(torch.float64)

@@ -28,7 +28,6 @@ event its learner was given: a resumed run neither logs an event twice nor loses
 from __future__ import annotations
 
 import math
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -37,7 +36,6 @@ import torch
 from omegaconf import DictConfig
 from tensordict import TensorDictBase
 from torchrl.envs import TransformedEnv
-from tqdm import tqdm
 
 from hfrl_torch import keys
 from hfrl_torch.agents.cem import CrossEntropyMethod
@@ -170,15 +168,10 @@ class CEMLearner(Learner):
             )
             if self.taught:
                 logger.text("trainer", f"{self.who}, fusion={self.cfg.fusion.name}")
-        if self.teaching is not None:
-            wait = float(self.cfg.trainer.wait_for_page_s)
-            tqdm.write(f"Teach the agent in your browser: {self.teaching.url}", file=sys.stderr)
-            if wait > 0 and not self.resumed and self.cem.iteration == 0:
-                tqdm.write(f"Waiting up to {wait:g} s for the page to open...", file=sys.stderr)
-                if not self.teaching.session.wait_for_page(wait):
-                    tqdm.write(
-                        "No page opened: learning from the game alone until one does.", file=sys.stderr
-                    )
+        if self.teaching is not None:  # only a new run waits for the page
+            first = not self.resumed and self.cem.iteration == 0
+            wait = float(self.cfg.trainer.wait_for_page_s) if first else 0.0
+            self.teaching.announce(wait, "learning from the game alone")
 
     # -------------------------------------------------------------------- iterate
 

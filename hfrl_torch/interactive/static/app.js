@@ -22,7 +22,7 @@ const WAIT = 4000, OVER = 4001;
 const $ = (id) => document.getElementById(id);
 const S = {
   ws: null, connected: false, everConnected: false, failures: 0, ended: null,
-  keys: { good: "/", bad: "z", pause: "p", presence: "h" }, view: "tetris", info: {},
+  keys: { good: "/", bad: "z", pause: "p", presence: "h" }, view: "tetris", info: {},  // info: the run's config message
   role: "teach", paused: false, here: true, live: true, ending: null, progress: {},
   given: 0, pending: new Map(), nextId: 0, curve: [], frame: null, reaction: 0.3, reconnect: 0, clearTimer: null,
   asked: {},
@@ -62,6 +62,7 @@ function leftText() {
   let left;
   if (p.unit === "rounds") left = `${p.left} of ${p.total} practice rounds left`;
   else if (p.unit === "episodes") left = `${p.left} of ${p.total} episodes left`;
+  else if (p.unit === "steps") left = `${p.left} of ${p.total} steps left`;
   else left = `${(p.left / 60).toFixed(1)} of ${(p.total / 60).toFixed(1)} simulated minutes left`;
   const t = duration(p.left_s);
   return t === null ? left : `${left}, about ${t} at the current pace`;
@@ -85,6 +86,7 @@ function statusText() {
   if (!S.live && !S.frame) return "The run is starting: the game appears here in a moment. Presses count once it is on screen.";
   if (!S.live) return "Practising on its own between your games; presses are not counted until your next game.";
   if (S.paused) return `Paused. A press now counts for the ${S.view === "tetris" ? "placement" : "moment"} on screen. Press Resume (${S.keys.pause}) to go on.`;
+  if (S.view === "gym") return "Judge each step: a press counts for the step on screen a moment before it.";
   return S.view === "tetris"
     ? "Your game: judge each placement. A press counts for the placement on screen a moment before it."
     : "Watching you teach: a press counts for what the keepers did in the last half second.";
@@ -124,7 +126,7 @@ function render() {
   $("given").textContent = String(S.given);
   const p = S.progress || {};
   if (p.total !== undefined) {
-    $("progress").textContent = p.unit === "rounds"
+    $("progress").textContent = p.unit === "rounds" || p.unit === "steps"
       ? `${p.done} of ${p.total} done`
       : p.unit === "episodes" ? `${p.done} of ${p.total} episodes`
         : `${(p.done / 60).toFixed(1)} of ${(p.total / 60).toFixed(1)} min`;
@@ -291,7 +293,40 @@ function drawKeepaway(f) {
   $("speed-unit").textContent = `decisions/s (real time: ${f.real_time})`;
 }
 
+// any Gymnasium task: the frame the task rendered itself, drawn when it has loaded (frames come in order)
+function drawGym(f) {
+  $("columns").hidden = true;
+  $("steered").textContent = "";
+  const img = new Image();
+  img.onload = () => {
+    if (S.frame !== f) return;  // a later frame came first
+    const c = $("view");
+    if (c.width !== img.width || c.height !== img.height) { c.width = img.width; c.height = img.height; }
+    c.getContext("2d").drawImage(img, 0, 0);
+  };
+  img.src = f.image;
+  $("game").textContent = `${f.episode}, step ${f.step}`;
+  $("score").textContent = `${nice(f["return"])}${f.ended ? " (episode over)" : ""}`;
+  $("action").textContent = f.action;
+  $("weight").textContent = f.weight === null || f.weight === undefined ? "-" : f.weight.toFixed(2);
+}
+
 function showView(view) {
+  if (view === "gym") {
+    document.body.classList.add("gym");
+    const task = S.info.task ? ` in ${S.info.task}` : "";
+    $("help").innerHTML = "";
+    $("help").append(`Watch the agent act${task}, one step at a time. Press `);
+    $("help").insertAdjacentHTML("beforeend", '<kbd id="key-good">/</kbd> or <b>Good</b> when a step ' +
+      'was good, <kbd id="key-bad">z</kbd> or <b>Bad</b> when it was bad. It learns from you and from the ' +
+      "task's reward.");
+    $("game-label").textContent = "Episode";
+    $("score-label").textContent = "Return so far";
+    $("action-label").textContent = "Last action";
+    $("progress-label").textContent = "Steps";
+    $("speed-unit").textContent = "steps/s";
+    return;
+  }
   if (view !== "keepaway") return;
   document.body.classList.add("keepaway");
   $("help").innerHTML = "Watch the keepers (blue, numbered) keep the ball from the takers (red). Press " +
@@ -317,22 +352,24 @@ function drawCurveOn(c, curve) {
   const keep = S.view === "keepaway";
   const xs = curve.map((p) => p[0]), ys = curve.map((p) => p[1]);
   const x0 = curve.length ? Math.min(...xs) : 0, x1 = curve.length ? Math.max(...xs, x0 + 1) : 1;
-  const y1 = Math.max(...ys, 1) * 1.1;
+  // from 0 (or below it: a task's returns may be negative) to a tenth above the highest point
+  const lo = Math.min(0, ...ys), hi = Math.max(1, ...ys), span = hi - lo;
+  const y0 = lo < 0 ? lo - 0.1 * span : 0, y1 = hi + 0.1 * span;
   const X = (x) => L + (curve.length === 1 ? W / 2 : ((x - x0) / (x1 - x0)) * W);
-  const Y = (y) => T + H - (y / y1) * H;
+  const Y = (y) => T + H - ((y - y0) / (y1 - y0)) * H;
   g.strokeStyle = "#555"; g.lineWidth = 1; g.beginPath();
   g.moveTo(L, T); g.lineTo(L, T + H); g.lineTo(L + W, T + H); g.stroke();
   g.fillStyle = "#333"; g.font = "11px system-ui, sans-serif";
   g.textAlign = "right"; g.textBaseline = "middle";
-  [0, y1 / 2, y1].forEach((y) => { g.fillText(nice(y), L - 4, Y(y)); g.beginPath(); g.moveTo(L - 3, Y(y)); g.lineTo(L, Y(y)); g.stroke(); });
+  [y0, (y0 + y1) / 2, y1].forEach((y) => { g.fillText(nice(y), L - 4, Y(y)); g.beginPath(); g.moveTo(L - 3, Y(y)); g.lineTo(L, Y(y)); g.stroke(); });
   g.textAlign = "center"; g.textBaseline = "top";
   if (curve.length) {
     const ticks = curve.length === 1 ? [x0] : [x0, x1];
     ticks.forEach((x) => { g.fillText(nice(x), X(x), T + H + 3); });
   }
-  g.fillText(keep ? "episodes" : "practice round", L + W / 2, T + H + 18);
+  g.fillText(S.info.curve_x || (keep ? "episodes" : "practice round"), L + W / 2, T + H + 18);
   g.save(); g.translate(10, T + H / 2); g.rotate(-Math.PI / 2);
-  g.fillText(keep ? "seconds held" : "lines per test game", 0, -6); g.restore();
+  g.fillText(curveUnit(), 0, -6); g.restore();
   if (!curve.length) {
     g.textBaseline = "middle"; g.fillText("no point yet", L + W / 2, T + H / 2);
     return;
@@ -346,11 +383,18 @@ function drawCurveOn(c, curve) {
   });
 }
 
+// what the curve's points measure: the run's own words (info.curve_y), else the domain's
+function curveUnit() {
+  return S.info.curve_y || (S.view === "keepaway" ? "seconds held" : "lines per test game");
+}
+
 function drawCurve() {
   drawCurveOn($("curve"), S.curve);
   if (!S.curve.length) { $("curve-label").textContent = ""; return; }
   const last = S.curve[S.curve.length - 1], best = Math.max(...S.curve.map((p) => p[1]));
-  $("curve-label").textContent = (S.view === "keepaway"
+  $("curve-label").textContent = (S.info.curve_note
+    ? `${S.info.curve_note}: latest ${nice(last[1])}, best ${nice(best)}.`
+    : S.view === "keepaway"
     ? `Seconds the keepers kept the ball (mean of each block of episodes): latest ${last[1].toFixed(1)}, best ${best.toFixed(1)}.`
     : `Lines per test game after each practice round: latest ${last[1].toFixed(1)}, best ${best.toFixed(1)}.`) +
     " Filled dots: you taught; hollow: it practised alone.";
@@ -382,10 +426,11 @@ function showSummary(m) {
     `${m.given} presses counted: ${m.good} good, ${m.bad} bad${extra.length ? " (" + extra.join(", ") + ")" : ""}. ` +
     notCountedText(m.not_taken || 0);
   drawCurveOn($("summary-curve"), m.curve);
-  const unit = S.view === "keepaway" ? "seconds held" : "lines per test game";
+  const unit = curveUnit();
   const taught = m.curve.filter((p) => p[2] >= 0.5).map((p) => p[1]);
   const alone = m.curve.filter((p) => p[2] < 0.5).map((p) => p[1]);
-  let change = "No point of the curve yet: the first practice round did not end.";
+  let change = S.view === "tetris" ? "No point of the curve yet: the first practice round did not end."
+    : "No point of the curve yet.";
   if (m.curve.length) {
     const first = m.curve[0][1], last = m.curve[m.curve.length - 1][1];
     change = `From ${first.toFixed(1)} to ${last.toFixed(1)} ${unit}.`;
@@ -448,6 +493,7 @@ function onMessage(ev) {
   const m = JSON.parse(ev.data);
   if (m.type === "config") {
     S.keys = m.keys; S.view = m.view || "tetris"; S.reaction = m.reaction_s; S.reconnect = m.reconnect_s || 0;
+    S.info = m;
     showView(S.view);
     $("key-good").textContent = S.keys.good; $("key-bad").textContent = S.keys.bad;
     $("key-pause").textContent = S.keys.pause; $("key-presence").textContent = S.keys.presence;
@@ -457,6 +503,7 @@ function onMessage(ev) {
   else if (m.type === "status") { S.over = m.game_over || null; render(); }
   else if (m.type === "tetris") { S.frame = m; S.over = null; drawTetris(m); }
   else if (m.type === "keepaway") { S.frame = m; drawKeepaway(m); }
+  else if (m.type === "gym") { S.frame = m; drawGym(m); }
   else if (m.type === "curve") { S.curve = m.curve; drawCurve(); }
   else if (m.type === "role") { S.role = m.role; render(); }
   else if (m.type === "ack") onAck(m);
