@@ -1,6 +1,6 @@
-"""``evaluate.py`` on ``domain=gym``: play N fresh episodes of a saved DQN policy (Q, fused with the saved H^
-by the run's rule and last weight), a reference callable, or random actions, and report the mean return
-with a 95 % interval."""
+"""``evaluate.py`` on ``domain=gym``: play N fresh episodes of a saved DQN or PPO policy (Q or the logits,
+fused with the saved H^ by the run's rule and last weight), a reference callable, or random actions, and
+report the mean return with a 95 % interval."""
 
 from __future__ import annotations
 
@@ -60,7 +60,7 @@ def _random_policy(actions: int, seed: int) -> TensorDictSequential:
 
 
 def _policy(cfg: DictConfig) -> tuple[str, GymTask, TensorDictSequential, Fusion, str]:
-    """(label, task, policy, fusion, what plays) of ``policy``: a gym DQN run or checkpoint (on its own
+    """(label, task, policy, fusion, what plays) of ``policy``: a gym DQN or PPO run or checkpoint (on its own
     task), a reference ``module:callable`` or ``random`` (on ``domain``'s task)."""
     name = "random" if cfg.policy is None else str(cfg.policy)
     idle = Fusion("none", "none", ConstantWeight(0.0)).eval()
