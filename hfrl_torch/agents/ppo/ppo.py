@@ -19,8 +19,10 @@ was chosen (``keys.HUMAN_VALUES`` and :data:`PLAYED_WEIGHT`, stored by the colle
 pi_new / pi_old measures only the policy network's change and starts at 1 (``keys.FUSION_WEIGHT`` for the
 additive rules; for control sharing 1 where the coin followed H^, 0 where not, which the fusion's
 evaluation mode turns back into the same choice without a new draw). A row that followed H^ has a ratio of
-1 whatever the network does: it teaches the critic, not the actor. Reward-level rules
-(``reward_shaping``) reach PPO as the reward GAE reads (the env's ``FeedbackFusion``), not here.
+1 whatever the network does: it teaches the critic, not the actor. With ``fusion.normalise=spread`` the
+loss scales H^ by the logits' running spread as it stands at the update, not as it stood at each
+decision. Reward-level rules (``reward_shaping``) reach PPO as the reward GAE reads (the env's
+``FeedbackFusion``), not here.
 """
 
 from __future__ import annotations

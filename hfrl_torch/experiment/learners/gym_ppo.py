@@ -10,8 +10,10 @@ against ``trainer.reference``; every step of a batch, in time order, H^ records 
 from the feedback delivered, and each ended episode ends the fusion's episode (the trust factor of eq. 4.4,
 the adaptive bandit) with its return above ``domain.min_return``; then PPO learns from the batch.
 
-How H^ meets PPO (``../shared/specs/feedback.md``: the person's reward is a signal about the agent's
-recent behaviour, modelled by H^, and the fusion acts on what the agent decides by or learns from):
+How H^ meets PPO. The project's feedback spec (``shared/specs/feedback.md``, "Combining H^ with the
+environment") fuses R, "the environment-trained estimate", with H^ at the choice, a = argmax_a f(R, H), and
+offers Knox & Stone's techniques, of which "action biasing and control sharing were the most robust when H
+and the environment are learned at the same time". A policy's estimate of each action is its logit, so:
 
 - **decision level** (``linear``, ``annealed``, ``action_biasing``, ``control_sharing``, ``none``): the
   fusion acts on the policy's preferences, its logits, as it acts on DQN's Q: the action is sampled from
