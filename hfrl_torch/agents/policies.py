@@ -11,6 +11,8 @@ writes with :func:`export_policy`; ``kind`` names the loader in :data:`POLICY_LO
   fusion rule); ``gym_dqn`` also keeps the ``task`` it learned, which ``evaluate.py`` plays it on;
 * ``gym_tamer``: TAMER's H^ alone (Deep TAMER's network on the observation), played greedily, with its
   ``task``;
+* ``gym_ppo``: PPO's policy network (``actor``, one logit per action), played greedily as ``gym_dqn`` plays
+  Q (argmax of the logits, fused with H^ where the run had a trainer), on its ``task``;
 * ``tile_sarsa``: the keepaway Sarsa keepers' tile coding (and H^ by the run's fusion rule). Its weight
   tables stay where the run's state keeps them (``state -> agent -> weight``, ``state -> human ->
   human_weight``), so a checkpoint holds them once.
@@ -340,18 +342,21 @@ def _load_tetris_dqn(checkpoint: dict[str, Any], device: torch.device, generator
     return module.to(device), info
 
 
-@register_policy_loader("gym_dqn")
-def _load_gym_dqn(checkpoint: dict[str, Any], device: torch.device, generator: torch.Generator) -> Loaded:
+def _gym_policy(
+    checkpoint: dict[str, Any], device: torch.device, key: str, what: str, describe: str
+) -> Loaded:
+    """A network of one value per action on the observation (``key`` in the policy), played greedily
+    (fused with the saved H^ where the run had a trainer), and the ``task`` it learned."""
     p = checkpoint["policy"]
     size, actions, scale = int(p["observation_size"]), int(p["actions"]), p["scale"]
-    q = _load_state(ActionMLP(size, actions, p["cells"], scale), p["q"], "Q network")
+    net = _load_state(ActionMLP(size, actions, p["cells"], scale), p[key], what)
     human = None
     h = p.get("human")
     if p.get("fusion") is not None and h is not None:
         model = _load_state(ActionMLP(size, actions, h["cells"], scale), h["model"], "H^ network")
         human = _Values(lambda td: model(td.get(keys.OBSERVATION)))
-    module, fusion = _dqn_policy(q, keys.OBSERVATION, None, [], p, human, [keys.OBSERVATION])
-    info = {"fusion": fusion, "describe": f"DQN, {_fusion_words(p)}", **_gym_task(p)}
+    module, fusion = _dqn_policy(net, keys.OBSERVATION, None, [], p, human, [keys.OBSERVATION])
+    info = {"fusion": fusion, "describe": describe, **_gym_task(p)}
     return module.to(device), info
 
 
@@ -377,6 +382,19 @@ def _load_gym_tamer(checkpoint: dict[str, Any], device: torch.device, generator:
     )
     info = {"fusion": fusion, "describe": "TAMER, greedy on H^", **_gym_task(p)}
     return module.to(device), info
+
+
+@register_policy_loader("gym_dqn")
+def _load_gym_dqn(checkpoint: dict[str, Any], device: torch.device, generator: torch.Generator) -> Loaded:
+    return _gym_policy(checkpoint, device, "q", "Q network", f"DQN, {_fusion_words(checkpoint['policy'])}")
+
+
+@register_policy_loader("gym_ppo")
+def _load_gym_ppo(checkpoint: dict[str, Any], device: torch.device, generator: torch.Generator) -> Loaded:
+    """PPO's policy network played greedily: argmax of its logits (fused with H^ as ``gym_dqn`` fuses Q)."""
+    fused = checkpoint["policy"].get("fusion")
+    words = "logits alone" if fused is None else f"logits fused with H^ ({fused['scheme']})"
+    return _gym_policy(checkpoint, device, "actor", "policy network", f"PPO (greedy), {words}")
 
 
 # -------------------------------------------------------------------------------------------- keepaway

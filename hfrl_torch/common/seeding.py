@@ -56,7 +56,7 @@ STREAMS: dict[str, Linear | Hashed] = {
     "timing": Linear(2, 2),  # the simulated trainer's human-like timing (delays, fatigue, absence)
     "fusion": Linear(2, 5),  # the fusion rule's draws (e.g. control sharing's)
     "bandit": Linear(2, 7),  # the bandit weight's draws (fusion.weight=bandit or adaptive)
-    "replay": Linear(2, 11),  # DQN's replay sampling
+    "replay": Linear(2, 11),  # DQN's replay sampling; PPO's minibatches (a run has one or the other)
     "human_model": Linear(2, 13),  # Deep TAMER's replay sampling
     # the CE method, per iteration (extra: the iteration)
     "cem_candidates": Hashed(0),

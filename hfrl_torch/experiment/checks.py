@@ -49,6 +49,11 @@ from hfrl_torch.trainers.reference_oracle import right_actions
 TRAINERS = ("none", "oracle", "value_proxy", "replay", "interactive")
 KEEPAWAY_TRAINERS = ("none", "oracle", "replay", "interactive")
 PG_FUSIONS = ("none", "linear", "annealed")
+PPO_REFUSED = {  # the fusion schemes PPO cannot take, and why (learners/gym_ppo.py's docstring)
+    "exponential": "it scales R by a factor of H^ and assumes R >= 0, and a logit has no sign of its own",
+    "human_only": "on-policy PPO cannot learn from actions H^ alone chooses (agent=dqn fusion=human_only is "
+    "Deep TAMER alone)",
+}
 NORMALISE = ("true", "false", "spread", "null")
 MAX_TABLE_GIB = 16.0  # refuse configs whose keepaway weight tables alone would need more memory than this
 
@@ -748,6 +753,49 @@ def check_gym_tamer(cfg: DictConfig) -> None:
         )
     check_gym_trainer(cfg, ("oracle",))  # a replayed log: not yet for TAMER alone
     check_departure(cfg)
+
+
+def check_gym_ppo(cfg: DictConfig) -> None:
+    """PPO on any task: its budget, networks and loss, the fusion schemes that act on a softmax policy, H^
+    and the oracle against ``trainer.reference``."""
+    a = "agent."
+    require_int(cfg, a + "frames", 1)
+    boards = require_int(cfg, a + "boards", 1, 4096)
+    steps = require_int(cfg, a + "steps_per_batch", 1, 10_000)
+    require_int(cfg, a + "eval_every", 1)
+    require_int(cfg, a + "eval_episodes", 1, 10_000)
+    require_int(cfg, a + "minibatch_size", 1, boards * steps)
+    require_int(cfg, a + "epochs", 1, 1000)
+    require_float(cfg, a + "lr", 1e-12)
+    require_float(cfg, a + "gamma", 0.0, 1.0)
+    require_float(cfg, a + "lmbda", 0.0, 1.0)
+    require_float(cfg, a + "clip_epsilon", 1e-6, 1.0)
+    require_float(cfg, a + "entropy_coeff", 0.0)
+    require_float(cfg, a + "critic_coeff", 0.0)
+    require_float(cfg, a + "max_grad_norm", 1e-12)
+    check_cells(cfg, a + "cells")
+    fusion = cfg.fusion.name
+    if fusion in PPO_REFUSED:
+        raise ConfigError(
+            f"fusion={fusion!r} with agent=ppo is invalid: {PPO_REFUSED[fusion]}; allowed: "
+            f"{', '.join(f for f in FUSIONS if f not in PPO_REFUSED)}"
+        )
+    if fusion != "none" and OmegaConf.select(cfg, "fusion.normalise") is True:
+        raise ConfigError(
+            "fusion.normalise=true with agent=ppo is invalid: rescaling the logits to [0, 1] per decision "
+            "caps how sure the softmax policy can be; allowed: null, false, spread"
+        )
+    trainer = cfg.trainer.name
+    if trainer == "none":
+        if fusion != "none":
+            raise ConfigError(
+                f"fusion={fusion!r} fuses a trainer's H^ into the learner; choose a trainer: oracle "
+                "(or fusion=none)"
+            )
+        return
+    if OmegaConf.select(cfg, "trainer.leave_after") is not None:
+        raise ConfigError("trainer.leave_after with agent=ppo is not available yet; allowed: null")
+    check_gym_trainer(cfg, ("none", "oracle"))
 
 
 def check_gym_trainer(cfg: DictConfig, allowed: Sequence[str]) -> None:

@@ -1,6 +1,6 @@
-"""``evaluate.py`` on ``domain=gym``: play N fresh episodes of a saved policy (DQN's Q, fused with the saved
-H^ by the run's rule and last weight, or TAMER's H^ alone), a reference callable, or random actions, and
-report the mean return with a 95 % interval."""
+"""``evaluate.py`` on ``domain=gym``: play N fresh episodes of a saved policy (DQN's Q or PPO's logits, fused
+with the saved H^ by the run's rule and last weight, or TAMER's H^ alone), a reference callable, or random
+actions, and report the mean return with a 95 % interval."""
 
 from __future__ import annotations
 

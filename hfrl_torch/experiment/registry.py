@@ -22,6 +22,7 @@ from hfrl_torch.experiment.checks import (
 from hfrl_torch.experiment.gym_evaluation import evaluate_gym, format_gym_summary
 from hfrl_torch.experiment.keepaway_evaluation import evaluate_keepaway, format_keepaway_summary
 from hfrl_torch.experiment.learners.gym_dqn import GymDQN
+from hfrl_torch.experiment.learners.gym_ppo import GymPPO
 from hfrl_torch.experiment.learners.gym_tamer import GymTamer
 from hfrl_torch.experiment.learners.keepaway_dqn import KeepawayDQN
 from hfrl_torch.experiment.learners.keepaway_sarsa import SarsaKeepers
@@ -87,6 +88,7 @@ for _learner in (
     KeepawayDQN,
     GymDQN,
     GymTamer,
+    GymPPO,
 ):
     register_learner(_learner)
 register_domain(

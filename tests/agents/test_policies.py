@@ -28,6 +28,7 @@ DQN = ["agent=dqn", "agent.boards=2", "agent.cells=[8]", "agent.eval_episodes=2"
 TAUGHT_DQN = ["trainer=oracle", "fusion=linear", "human=mlp", "human.cells=[8]"]
 SARSA = ["agent=sarsa", "agent.learners=2", "agent.table_bits=10"]
 GYM = ["domain=gym", "logger=none", "trainer.reference=examples.cartpole:reference"]
+PPO = ["agent=ppo", "agent.boards=2", "agent.cells=[8]", "agent.eval_episodes=2", "agent.minibatch_size=8"]
 
 # (case, overrides, the kind its checkpoint's policy has): every registered learner, taught or not
 CASES = [
@@ -50,6 +51,8 @@ CASES = [
     ("gym_dqn", [*GYM, *DQN], "gym_dqn"),
     ("gym_dqn_fused", [*GYM, *DQN, *TAUGHT_DQN], "gym_dqn"),
     ("gym_tamer", [*GYM, "agent=tamer", "trainer=oracle", "agent.boards=2", "human.cells=[8]"], "gym_tamer"),
+    ("gym_ppo", [*GYM, *PPO], "gym_ppo"),
+    ("gym_ppo_fused", [*GYM, *PPO, *TAUGHT_DQN], "gym_ppo"),
 ]
 
 
@@ -109,7 +112,7 @@ def test_every_learners_saved_policy_loads_to_a_module_that_acts(
     assert bool(mask.gather(1, action.view(-1, 1)).all())  # only actions the env allows
     # the direct form the domain's batched player takes, where there is one
     direct = {"tetris": "afterstate", "keepaway": "chooser"}.get(ckpt["domain"])
-    assert (direct is None or info[direct] is None) == (kind.endswith("_dqn") or kind == "gym_tamer")
+    assert (direct is None or info[direct] is None) == kind.endswith(("_dqn", "_ppo", "_tamer"))
 
 
 def test_the_linear_module_chooses_the_best_safe_placement(tmp_path, compose_train):
@@ -140,7 +143,8 @@ def test_an_unknown_kind_is_refused_in_one_line_naming_it_and_the_allowed(bad):
         load_policy(ckpt)
     message = str(e.value)
     assert "\n" not in message and repr(bad) in message and "run/last.pt" in message
-    assert "allowed: fused, gym_dqn, gym_tamer, keepaway_dqn, linear, tetris_dqn, tile_sarsa" in message
+    allowed = "fused, gym_dqn, gym_ppo, gym_tamer, keepaway_dqn, linear, tetris_dqn, tile_sarsa"
+    assert f"allowed: {allowed}" in message
 
 
 def test_export_refuses_a_kind_nothing_loads():

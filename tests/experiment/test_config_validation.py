@@ -159,7 +159,7 @@ def test_unknown_group_option_names_the_allowed_ones(capsys):
     assert info.value.code == 2
     assert (
         capsys.readouterr().err.strip()
-        == "error: unknown agent 'nosuch'; allowed: cem, dqn, pg, qlearning, sarsa, tamer"
+        == "error: unknown agent 'nosuch'; allowed: cem, dqn, pg, ppo, qlearning, sarsa, tamer"
     )
     check_group_choices(["domain=tetris", "domain.width=8", "-m"])  # valid ones pass
 
