@@ -720,12 +720,6 @@ class KeepawaySimulator:
             self.reset(ended)
         return outcome
 
-    def compiled_decisions(self) -> tuple[Decision, Tensor]:
-        """``kernels="cycle"``: :meth:`decision` and the holder's state variables [B, F] in one
-        compiled call."""
-        holder, kickable, must, obs = self._require_compiled().decisions(self.state)
-        return Decision(holder=holder, kickable=kickable, must_decide=must), obs
-
     def advance(
         self,
         actions: Tensor | None,

@@ -94,9 +94,9 @@ def test_compiled_env_outputs_are_the_decisions_of_the_state() -> None:
         td.set(keys.ACTION, torch.randint(0, 3, (5,), generator=gen))
         out = env.step(td)["next"]
         done = out[keys.DONE].squeeze(-1)
-        dec, obs = env.sim.compiled_decisions()
-        assert torch.equal(out[keys.OBSERVATION], obs) and torch.equal(out[keys.KEEPER], dec.holder)
-        assert torch.equal(out[keys.DECIDING], dec.must_decide & ~done)
+        holder, _, must, obs = env.sim.compiled.decisions(env.sim.state)
+        assert torch.equal(out[keys.OBSERVATION], obs) and torch.equal(out[keys.KEEPER], holder)
+        assert torch.equal(out[keys.DECIDING], must & ~done)
         assert torch.equal(out[keys.EPISODE_CYCLES], env.sim.state.episode_cycles)
         if bool(done.any()):
             ended += int(done.sum())

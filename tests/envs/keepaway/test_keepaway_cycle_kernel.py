@@ -193,10 +193,10 @@ def test_compiled_decisions_match_torch() -> None:
     sim = KeepawaySimulator(32, KeepawayConfig(kernels="cycle", **EXACT), seed=4)
     sim.advance(None, torch.ones(32, dtype=torch.bool), first=False, restart=True)
     sim.advance(torch.zeros(32, dtype=torch.long), torch.ones(32, dtype=torch.bool), restart=True)
-    dec, obs = sim.compiled_decisions()
+    holder, _, must, obs = sim.compiled.decisions(sim.state)
     ref = sim.decision()
     ref_obs, _ = sim.observe(ref.holder)
-    assert torch.equal(dec.holder, ref.holder) and torch.equal(dec.must_decide, ref.must_decide)
+    assert torch.equal(holder, ref.holder) and torch.equal(must, ref.must_decide)
     assert torch.allclose(obs, ref_obs, atol=1e-4)
 
 

@@ -162,7 +162,8 @@ class CompiledCycle:
         return cause
 
     def decisions(self, state: object) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """Holder, kickable, must-decide [B] and the holder's state variables [B, F] (float32)."""
+        """Holder, kickable, must-decide [B] and the holder's state variables [B, F] (float32): the compiled
+        decision logic on its own, which the tests hold against the torch path's ``decision``/``observe``."""
         holder = torch.empty(self.batch, dtype=torch.long)
         kickable = torch.empty(self.batch, dtype=torch.bool)
         must = torch.empty(self.batch, dtype=torch.bool)
