@@ -44,6 +44,7 @@ CURVES = (
     ("episode", "eval/episode_seconds_mean"),  # keepaway learners
     ("frames", "eval/greedy_lines_mean"),  # DQN on Tetris: the greedy policy's fresh games
     ("frames", "eval/greedy_episode_seconds_mean"),  # DQN keepers: the greedy policy's fresh episodes
+    ("frames", "eval/greedy_return_mean"),  # domain=gym (DQN, PPO, TAMER): the greedy policy's fresh episodes
 )
 IGNORED = {"seed", "resume", "hydra", "logger", "threads", "device"}
 EFFORT = ("feedback_events", "trainer_minutes", "weight")  # per point, with a trainer

@@ -5,7 +5,7 @@ from __future__ import annotations
 import shlex
 import sys
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
@@ -45,6 +45,12 @@ def _compare_lines(cfg: DictConfig, python: str, overrides: list[str]) -> list[s
         f"                  {python} evaluate.py runs={where}   "
         f"(the same run beside {' and '.join(parts)}, paired)",
     ]
+
+
+def _config_dir_args(sources: Any) -> list[str]:
+    """``--config-dir <dir>`` for each config directory the user named (Hydra's ``runtime.config_sources``
+    from the command line), so that a printed command finds the user's own options as this run did."""
+    return [a for s in sources if s.provider == "command-line" for a in ("--config-dir", str(s.path))]
 
 
 def _valid_with(cfg: DictConfig, fusion: str) -> bool:
@@ -116,6 +122,8 @@ def train(cfg: DictConfig) -> TrainResult:
         choice = "" if domain == EVALUATE_DEFAULT_DOMAIN else f"domain={domain} "
         lines.append(f"Evaluate:         {python} evaluate.py {choice}policy={run_dir}")
     if final and not cfg.resume:
-        lines += _compare_lines(cfg, python, list(HydraConfig.get().overrides.task))
+        hydra = HydraConfig.get()
+        own = _config_dir_args(hydra.runtime.config_sources)
+        lines += _compare_lines(cfg, python, [*own, *hydra.overrides.task])
     print("\n".join(lines), file=sys.stderr)
     return TrainResult(run_dir, learner.score(final) if final else None)
