@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import copy
 import math
-from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -58,16 +57,15 @@ from hfrl_torch.agents.ppo import PPO
 from hfrl_torch.common.logger import Logger
 from hfrl_torch.common.seeding import component_seed
 from hfrl_torch.common.stats import summarize
-from hfrl_torch.envs.gym_task import GymTask, TaskSpaces, make_gym_batch
-from hfrl_torch.experiment.checks import check_gym_ppo, gym_spaces
+from hfrl_torch.envs.gym_task import make_gym_batch
+from hfrl_torch.experiment.checks import check_gym_ppo
 from hfrl_torch.experiment.factories import (
     make_deep_tamer,
     make_feedback_wiring,
     make_fusion,
-    make_gym_task,
     make_gym_trainer,
 )
-from hfrl_torch.experiment.learners.gym_dqn import gym_env, input_scale, observation_mlp, play_returns
+from hfrl_torch.experiment.learners.gym_dqn import SCORE_KEY, GymTaskParts, greedy_returns, observation_mlp
 from hfrl_torch.experiment.learners.tetris_games import TRAINER_LABELS
 from hfrl_torch.experiment.run import Learner, Point, WallClockSaves
 from hfrl_torch.fusion.fusion import Fusion
@@ -78,14 +76,13 @@ from hfrl_torch.trainers.transform import HumanFeedback
 __all__ = ["GymPPO"]
 
 SAVE_EVERY_S = 10.0  # wall seconds between checkpoints
-SCORE = "eval/greedy_return"
 
 
 def _observation(td: TensorDictBase) -> torch.Tensor:
     return td.get(keys.OBSERVATION)
 
 
-class GymPPO(Learner):
+class GymPPO(GymTaskParts, Learner):
     """PPO over the observation of any discrete-action task on ``agent.boards`` copies (module docstring)."""
 
     domain = "gym"
@@ -170,18 +167,6 @@ class GymPPO(Learner):
         self.batches = iter(self.collector)
         self.saves = WallClockSaves()
 
-    @cached_property
-    def task(self) -> GymTask:
-        return make_gym_task(self.cfg)
-
-    @cached_property
-    def spaces(self) -> TaskSpaces:
-        return gym_spaces(self.cfg)
-
-    @cached_property
-    def scale(self) -> list[float]:
-        return input_scale(self.spaces)
-
     # ---------------------------------------------------------------- the loop
 
     @property
@@ -236,14 +221,9 @@ class GymPPO(Learner):
     def greedy_evaluation(self) -> dict[str, float]:
         """The greedy policy (argmax of the fused logits, the fusion in evaluation mode) on the same fresh
         episodes at every point."""
-        env = gym_env(self.task, int(self.cfg.agent.eval_episodes), component_seed(self.seed, "eval_games"))
-        try:
-            with set_exploration_type(ExplorationType.DETERMINISTIC):
-                returns = play_returns(env, self.policy, self.fusion)
-        finally:
-            env.close()
-        s = summarize(returns)
-        return {f"{SCORE}_{k}": s[k] for k in ("mean", "median", "ci95_low", "ci95_high")}
+        episodes = int(self.cfg.agent.eval_episodes)
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            return greedy_returns(self.task, episodes, self.seed, self.policy, self.fusion)
 
     def _point(self) -> Point:
         evaluation = self.greedy_evaluation()
@@ -344,14 +324,14 @@ class GymPPO(Learner):
     # ------------------------------------------------------------------ results
 
     def report(self, final: dict[str, Any]) -> list[str]:
-        low, high = final.get(f"{SCORE}_ci95_low"), final.get(f"{SCORE}_ci95_high")
+        low, high = final.get(f"{SCORE_KEY}_ci95_low"), final.get(f"{SCORE_KEY}_ci95_high")
         lines = [
-            f"Done: {final['frames']} frames; greedy policy {final[f'{SCORE}_mean']:.2f} return per episode "
-            f"(95% CI {low:.2f}..{high:.2f} over {self.cfg.agent.eval_episodes} fresh episodes)"
+            f"Done: {final['frames']} frames; greedy policy {final[f'{SCORE_KEY}_mean']:.2f} return per "
+            f"episode (95% CI {low:.2f}..{high:.2f} over {self.cfg.agent.eval_episodes} fresh episodes)"
         ]
         curve = [r for r in self.history if self.x_key in r]
         if len(curve) > 1:
-            shown = ", ".join(f"{r[f'{SCORE}_mean']:.1f}" for r in curve)
+            shown = ", ".join(f"{r[f'{SCORE_KEY}_mean']:.1f}" for r in curve)
             lines.append(f"Curve (greedy return per episode every {self.eval_every} frames): {shown}")
         if self.taught:
             lines.append(
@@ -364,10 +344,10 @@ class GymPPO(Learner):
         return lines
 
     def score(self, final: dict[str, Any]) -> float | None:
-        return final.get(f"{SCORE}_mean")
+        return final.get(f"{SCORE_KEY}_mean")
 
     def hparam_metrics(self, final: dict[str, Any]) -> dict[str, float]:
-        return {"hparam/greedy_return": final[f"{SCORE}_mean"]}
+        return {"hparam/greedy_return": final[f"{SCORE_KEY}_mean"]}
 
     def close(self) -> None:
         self.collector.shutdown()
