@@ -55,7 +55,7 @@ from hfrl_torch.experiment.learners.gym_dqn import (
     observation_mlp,
 )
 from hfrl_torch.experiment.learners.tetris_games import TRAINER_LABELS
-from hfrl_torch.experiment.run import Learner, Point
+from hfrl_torch.experiment.run import FramesLearner, Point
 from hfrl_torch.fusion.transform import FusionModule
 
 __all__ = ["GymTamer"]
@@ -63,14 +63,12 @@ __all__ = ["GymTamer"]
 DECISION_KEYS = (keys.HUMAN_VALUES, keys.FUSED_VALUES, keys.FUSION_WEIGHT)  # the policy's, not the env's
 
 
-class GymTamer(GymTaskParts, Learner):
+class GymTamer(GymTaskParts, FramesLearner):
     """Deep TAMER alone on ``agent.boards`` copies of a task, taught by the simulated oracle (module
     docstring)."""
 
     domain = "gym"
     agent = "tamer"
-    unit = "frame"
-    x_key = "frames"
 
     @classmethod
     def check(cls, cfg: DictConfig) -> None:
@@ -128,14 +126,6 @@ class GymTamer(GymTaskParts, Learner):
     @property
     def episodes(self) -> int:
         return int(self.games.sum())
-
-    @property
-    def total(self) -> float:
-        return self.frames_total
-
-    @property
-    def position(self) -> float:
-        return self.frames
 
     @property
     def description(self) -> str:
