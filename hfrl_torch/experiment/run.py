@@ -218,6 +218,22 @@ class Learner(ABC):
         """Release what the learner holds (servers, logs); called once, also after an interruption."""
 
 
+class FramesLearner(Learner):
+    """A learner whose budget (``frames_total``, from ``agent.frames``) and progress (``frames``) are env
+    frames of all its boards, the curve's x axis (the DQN learners, every ``domain=gym`` learner)."""
+
+    unit = "frame"
+    x_key = "frames"
+
+    @property
+    def total(self) -> float:
+        return self.frames_total
+
+    @property
+    def position(self) -> float:
+        return self.frames
+
+
 class Callback:
     """Hooks of :func:`learn` (Stable-Baselines3's callback shape); each may be left as it is."""
 

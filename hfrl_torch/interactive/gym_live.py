@@ -31,7 +31,6 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
-import torch
 from PIL import Image
 from tensordict import TensorDictBase
 from torchrl.envs.transforms import Transform
@@ -39,12 +38,9 @@ from torchrl.envs.transforms import Transform
 from hfrl_torch import keys
 from hfrl_torch.common.errors import CheckpointError
 from hfrl_torch.feedback.events import FeedbackEvent
-from hfrl_torch.feedback.log import FeedbackLog
-from hfrl_torch.interactive.journal import browser_session
-from hfrl_torch.interactive.session import SOURCE, TeachingSession
+from hfrl_torch.interactive.live import BrowserQueueTrainer
+from hfrl_torch.interactive.session import TeachingSession
 from hfrl_torch.interactive.timeline import credit_time
-from hfrl_torch.trainers.base import Events
-from hfrl_torch.trainers.queue_trainer import QueueTrainer
 
 __all__ = ["BrowserGymTrainer", "FrameKeeper", "GymWatcher", "png_data_url"]
 
@@ -87,7 +83,7 @@ class FrameKeeper(gym.Wrapper):
         return frame
 
 
-class BrowserGymTrainer(QueueTrainer):
+class BrowserGymTrainer(BrowserQueueTrainer):
     """A person in the browser as the trainer of board 0 (the ``Trainer`` the ``HumanFeedback`` transform
     asks at every step).
 
@@ -99,15 +95,7 @@ class BrowserGymTrainer(QueueTrainer):
     :param log: the feedback log every press goes to (session ``<run>/browser``, numbered as the journal).
     """
 
-    source = SOURCE
     discrete = False  # credited on the continuous simulated clock, as the oracle's events are
-
-    def __init__(self, session: TeachingSession, log: FeedbackLog | None = None) -> None:
-        super().__init__(session.queue, log=log)
-        self.session = session
-        self.press_session = "" if log is None else browser_session(log.session)
-        self._now = 0.0
-        session.log_left = self.log_left
 
     def label(self, event: FeedbackEvent) -> FeedbackEvent:
         """``event`` filed under the frame it was made on, at its credit time (the step before its time, as
@@ -123,21 +111,6 @@ class BrowserGymTrainer(QueueTrainer):
             episode=seen.episode,
             session=self.press_session,
         )
-
-    def give(
-        self,
-        obs: TensorDictBase,
-        action: torch.Tensor,
-        time: float,
-        episode: torch.Tensor,
-        active: torch.Tensor | None = None,
-    ) -> Events:
-        self._now = float(time)
-        return super().give(obs, action, time, episode, active)
-
-    def log_left(self, pressed: list[FeedbackEvent]) -> None:
-        """Log the presses left in the queue when the run stops (``TeachingSession.log_left``)."""
-        self._emit([[self.label(ev) for ev in pressed]])
 
 
 class GymWatcher(Transform):

@@ -9,12 +9,18 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import torch
+from tensordict import TensorDictBase
 from tqdm import tqdm
 
 from hfrl_torch.common.checkpoint import LAST
 from hfrl_torch.common.errors import ConfigError
+from hfrl_torch.feedback.events import FeedbackEvent
+from hfrl_torch.feedback.log import FeedbackLog
+from hfrl_torch.interactive.journal import browser_session
 from hfrl_torch.interactive.server import TeachingServer
-from hfrl_torch.interactive.session import TeachingSession
+from hfrl_torch.interactive.session import SOURCE, TeachingSession
+from hfrl_torch.trainers.base import Events
 from hfrl_torch.trainers.queue_trainer import QueueTrainer
 
 KEY_NAMES = ("good", "bad", "pause", "presence")
@@ -24,6 +30,40 @@ KEY_NAMES = ("good", "bad", "pause", "presence")
 DEFAULT_SPEED = {"tetris": 1.5, "keepaway": 2.0}
 SUMMARY_NAME = "teaching_summary.json"  # the end-of-session summary the page showed, kept in the run
 REASONS = ("finished", "finished_by_you", "stopped", "failed")
+
+
+class BrowserQueueTrainer(QueueTrainer):
+    """A person's presses off the page's queue as a ``QueueTrainer``, each logged under the run's browser
+    session and filed by the subclass's :meth:`label` at the clock of the last ``give``; the presses left
+    when the run stops are logged too. What Tetris's and a gym task's browser trainers share.
+
+    :param session: the page's session; its queue holds the presses (``human:browser``, wall clock).
+    :param log: the feedback log every press goes to (None: not logged).
+    """
+
+    source = SOURCE
+
+    def __init__(self, session: TeachingSession, log: FeedbackLog | None = None) -> None:
+        super().__init__(session.queue, log=log)
+        self.session = session
+        self.press_session = "" if log is None else browser_session(log.session)
+        self._now = 0.0
+        session.log_left = self.log_left
+
+    def give(
+        self,
+        obs: TensorDictBase,
+        action: torch.Tensor,
+        time: float,
+        episode: torch.Tensor,
+        active: torch.Tensor | None = None,
+    ) -> Events:
+        self._now = float(time)
+        return super().give(obs, action, time, episode, active)
+
+    def log_left(self, pressed: list[FeedbackEvent]) -> None:
+        """Log the presses left in the queue when the run stops (``TeachingSession.log_left``)."""
+        self._emit([[self.label(ev) for ev in pressed]])
 
 
 @dataclass

@@ -13,12 +13,10 @@ from tensordict import TensorDictBase
 from hfrl_torch import keys
 from hfrl_torch.envs.tetris.pieces import PIECE_NAMES, PlacementTable, placement_table
 from hfrl_torch.feedback.events import FeedbackEvent
-from hfrl_torch.feedback.log import FeedbackLog
-from hfrl_torch.interactive.journal import browser_session
-from hfrl_torch.interactive.session import SOURCE, TeachingSession
+from hfrl_torch.interactive.live import BrowserQueueTrainer
+from hfrl_torch.interactive.session import TeachingSession
 from hfrl_torch.interactive.timeline import REACTION_S, credit_time
 from hfrl_torch.trainers.base import Events
-from hfrl_torch.trainers.queue_trainer import QueueTrainer
 
 # how long a live game waits after its last placement for feedback on it: the session's reaction allowance
 # plus a slow reaction (1 s); LATE_FEEDBACK_S at the default allowance
@@ -85,7 +83,7 @@ def tetris_frame(td: TensorDictBase, episode: int, weight: float, **extra: Any) 
     return frame
 
 
-class BrowserTetrisTrainer(QueueTrainer):
+class BrowserTetrisTrainer(BrowserQueueTrainer):
     """A person in the browser as the trainer of the watched Tetris board.
 
     Each press is filed under the placement that was on screen ``session.reaction_s`` before it (the
@@ -97,15 +95,7 @@ class BrowserTetrisTrainer(QueueTrainer):
     :param log: the feedback log every press goes to, with the time, game and placement it is credited at.
     """
 
-    source = SOURCE
     discrete = True  # a press is credited within its placement (``credit_time``)
-
-    def __init__(self, session: TeachingSession, log: FeedbackLog | None = None) -> None:
-        super().__init__(session.queue, log=log)
-        self.session = session
-        self.press_session = "" if log is None else browser_session(log.session)
-        self._now = 0.0
-        session.log_left = self.log_left
 
     def label(self, event: FeedbackEvent) -> FeedbackEvent:
         """``event`` filed under the placement on screen ``reaction_s`` before it (``session.filed``), at its
@@ -123,26 +113,11 @@ class BrowserTetrisTrainer(QueueTrainer):
             session=self.press_session,
         )
 
-    def give(
-        self,
-        obs: TensorDictBase,
-        action: torch.Tensor,
-        time: float,
-        episode: torch.Tensor,
-        active: torch.Tensor | None = None,
-    ) -> Events:
-        self._now = float(time)
-        return super().give(obs, action, time, episode, active)
-
     def late(self, now: float) -> Events:
         """The presses that came after the game's last placement (``now``: the loop's clock), filed and
         logged; no placement is recorded."""
         self._now = float(now)
         return self._emit([[self.label(ev) for ev in self.queue.drain()]])
-
-    def log_left(self, pressed: list[FeedbackEvent]) -> None:
-        """Log the presses left in the queue when the run stops (``TeachingSession.log_left``)."""
-        self._emit([[self.label(ev) for ev in pressed]])
 
 
 class TetrisPage:

@@ -47,7 +47,7 @@ from hfrl_torch.common.seeding import component_seed
 from hfrl_torch.common.stats import summarize
 from hfrl_torch.experiment.factories import FeedbackWiring, make_feedback_wiring, make_fusion
 from hfrl_torch.experiment.learners.tetris_games import TRAINER_LABELS
-from hfrl_torch.experiment.run import Learner, Point, WallClockSaves
+from hfrl_torch.experiment.run import FramesLearner, Point, WallClockSaves
 from hfrl_torch.feedback.log import FeedbackLog
 from hfrl_torch.fusion.fusion import Fusion
 from hfrl_torch.fusion.transform import FeedbackFusion, FusionModule
@@ -56,14 +56,143 @@ from hfrl_torch.interactive.live import LiveTeaching
 SAVE_EVERY_S = 10.0  # wall seconds between checkpoints
 
 
-class DeepQLearner(Learner):
+class CollectorLearner(FramesLearner):
+    """What the learners whose policy TorchRL's ``Collector`` runs on B boards, alone or taught, share
+    (:class:`DeepQLearner`, ``gym_ppo.GymPPO``): the budget in frames, a taught point's feedback fields,
+    the checkpoint's common state, the fusion's payload and the report. Their ``__init__`` sets the counts
+    (``frames``, ``points``, ``episodes``, ``events``, ``positive``, ``trainer_seconds``,
+    ``weights_played``), ``taught``, ``fusion``, ``reward_fusion``, ``saves`` and, taught, ``human``,
+    ``feedback_transform`` and ``log``."""
+
+    score_key: ClassVar[str] = ""  # the greedy evaluation's main metric
+    score_unit: ClassVar[str] = ""
+    episode_word: ClassVar[str] = "episode"
+
+    @property
+    def eval_episodes(self) -> int:
+        return int(self.cfg.agent.eval_episodes)
+
+    def save_due(self) -> bool:
+        return self.saves.due(SAVE_EVERY_S)
+
+    @abstractmethod
+    def greedy_evaluation(self) -> dict[str, float]:
+        """The greedy policy on the evaluation episodes (the same ones at every point)."""
+
+    @abstractmethod
+    def agent_record(self) -> dict[str, float]:
+        """A point's fields of the agent's own learning since the last point (its losses, its updates)."""
+
+    def _point(self) -> Point:
+        """The curve's next point: the greedy evaluation, the training episodes and the agent's learning since
+        the last point and, taught, the feedback; the tallies since the last point start again."""
+        evaluation = self.greedy_evaluation()
+        done = summarize(torch.tensor(self.finished, dtype=torch.float64), floor=0.0) if self.finished else {}
+        record: dict[str, Any] = {
+            "frames": self.frames,
+            **evaluation,
+            f"train/{self.episode_word}s": self.episodes,
+            f"train/{self.score_key.split('/')[-1].replace('greedy_', '')}": done.get("mean", math.nan),
+            **self.agent_record(),
+        }
+        if self.taught:
+            record.update(self.feedback_record())
+        self.finished, self.losses, self.weights_played = [], [], []
+        self.points += 1
+        return Point(record, self.frames)
+
+    def feedback_record(self) -> dict[str, float]:
+        """A taught point's feedback fields: the events, the trainer's minutes and the weight on H^ (now, and
+        the mean the episodes ended since the last point played at)."""
+        weight, played = float(self.fusion.weight()[0]), self.weights_played
+        return {
+            "feedback_events": float(self.events),
+            "trainer_minutes": self.trainer_seconds / 60.0,
+            "weight": weight,
+            "feedback/positive_share": self.positive / self.events if self.events else 0.0,
+            "fusion/weight_mean": weight,
+            "fusion/played_weight_mean": sum(played) / len(played) if played else math.nan,
+        }
+
+    def common_state(self) -> dict[str, Any]:
+        """The checkpoint's state besides the agent's own: the counts, the fusion, the reward fusion, the
+        random state and, taught, H^, the feedback transform and the log's last event."""
+        state: dict[str, Any] = {
+            "frames": self.frames,
+            "points": self.points,
+            "episodes": self.episodes,
+            "events": [self.events, self.positive],
+            "trainer_seconds": self.trainer_seconds,
+            "fusion": self.fusion.state_dict(),
+            "reward_fusion": self.reward_fusion.get_extra_state(),
+            "rng": torch.get_rng_state(),
+        }
+        if self.taught:
+            state.update(
+                human=self.human.state_dict(),
+                feedback=self.feedback_transform.get_extra_state(),
+                log_seq=self.log.last_seq,
+            )
+        return state
+
+    def load_common_state(self, state: dict[str, Any]) -> None:
+        """Resume what :meth:`common_state` saved (the log's events after it come again, once)."""
+        self.frames, self.points, self.episodes = (int(state[k]) for k in ("frames", "points", "episodes"))
+        self.events, self.positive = (int(v) for v in state["events"])
+        self.trainer_seconds = float(state["trainer_seconds"])
+        self.fusion.load_state_dict(state["fusion"])
+        self.reward_fusion.set_extra_state(state["reward_fusion"])
+        torch.set_rng_state(state["rng"])
+        if self.taught:
+            self.human.load_state_dict(state["human"])
+            self.feedback_transform.set_extra_state(state["feedback"])
+            self.log.resume(state["log_seq"], regenerated=True)
+
+    def fusion_payload(self) -> dict[str, Any] | None:
+        """How ``evaluate.py`` fuses the saved H^ with the agent's values (Q, or the policy's logits; None:
+        the agent alone)."""
+        if not self.taught:
+            return None
+        return {
+            "scheme": self.fusion.decision,
+            "scaling": self.fusion.scaling,
+            "weight": float(self.fusion.weight()[0]),
+            "q_spread": float(self.fusion.q_spread[0]),
+            "human": str(self.cfg.human.name),
+        }
+
+    def report(self, final: dict[str, Any]) -> list[str]:
+        low, high = final.get(f"{self.score_key}_ci95_low"), final.get(f"{self.score_key}_ci95_high")
+        lines = [
+            f"Done: {final['frames']} frames; greedy policy {final[f'{self.score_key}_mean']:.2f} "
+            f"{self.score_unit} (95% CI {low:.2f}..{high:.2f} over {self.eval_episodes} fresh "
+            f"{self.episode_word}s)"
+        ]
+        curve = [r for r in self.history if self.x_key in r]
+        if len(curve) > 1:
+            shown = ", ".join(f"{r[f'{self.score_key}_mean']:.1f}" for r in curve)
+            lines.append(f"Curve (greedy {self.score_unit} every {self.eval_every} frames): {shown}")
+        if self.taught:
+            lines.append(
+                f"Feedback:         {self.events} events of the "
+                f"{TRAINER_LABELS.get(self.cfg.trainer.name, self.cfg.trainer.name)} "
+                f"(fusion={self.cfg.fusion.name}, human={self.cfg.human.name}, "
+                f"weight on H^ now {float(self.fusion.weight()[0]):.2f})"
+            )
+            lines.append(f"Feedback log:     {self.log.path}")
+        return lines
+
+    def score(self, final: dict[str, Any]) -> float | None:
+        return final.get(f"{self.score_key}_mean")
+
+    def hparam_metrics(self, final: dict[str, Any]) -> dict[str, float]:
+        return {f"hparam/{self.score_key.split('/')[-1]}": final[f"{self.score_key}_mean"]}
+
+
+class DeepQLearner(CollectorLearner):
     """The collector loop of one DQN learner on B boards (see the module docstring)."""
 
     agent = "dqn"
-    unit = "frame"
-    x_key = "frames"
-    score_key: ClassVar[str] = ""  # the greedy evaluation's main metric
-    episode_word: ClassVar[str] = "episode"
 
     def __init__(self, cfg: DictConfig, run_dir: Path, checkpoint: dict[str, Any] | None = None) -> None:
         super().__init__(cfg, run_dir, checkpoint)
@@ -167,10 +296,6 @@ class DeepQLearner(Learner):
         return performance
 
     @abstractmethod
-    def greedy_evaluation(self) -> dict[str, float]:
-        """The greedy policy on the evaluation episodes (the same ones at every point)."""
-
-    @abstractmethod
     def policy_payload(self) -> dict[str, Any]:
         """What ``evaluate.py`` plays: the checkpoint's ``"policy"``, written with
         :func:`~hfrl_torch.agents.policies.export_policy`."""
@@ -202,14 +327,6 @@ class DeepQLearner(Learner):
         return TensorDictSequential(*modules)
 
     # ---------------------------------------------------------------- the loop
-
-    @property
-    def total(self) -> float:
-        return self.frames_total
-
-    @property
-    def position(self) -> float:
-        return self.frames
 
     @property
     def description(self) -> str:
@@ -273,124 +390,29 @@ class DeepQLearner(Learner):
             for _ in range(self.updates_per_batch):
                 self.losses.append(self.dqn.update())
 
-    def _point(self) -> Point:
-        evaluation = self.greedy_evaluation()
-        done = summarize(torch.tensor(self.finished, dtype=torch.float64), floor=0.0) if self.finished else {}
-        record: dict[str, Any] = {
-            "frames": self.frames,
-            **evaluation,
-            f"train/{self.episode_word}s": self.episodes,
-            f"train/{self.score_key.split('/')[-1].replace('greedy_', '')}": done.get("mean", math.nan),
+    def agent_record(self) -> dict[str, float]:
+        return {
             "train/loss": sum(self.losses) / len(self.losses) if self.losses else math.nan,
             "train/epsilon": float(self.explore.eps) if self.explore is not None else 0.0,
             "train/updates": self.dqn.updates,
         }
-        if self.taught:
-            record.update(
-                {
-                    "feedback_events": float(self.events),
-                    "trainer_minutes": self.trainer_seconds / 60.0,
-                    "weight": float(self.fusion.weight()[0]),
-                    "feedback/positive_share": self.positive / self.events if self.events else 0.0,
-                    "fusion/weight_mean": float(self.fusion.weight()[0]),
-                    "fusion/played_weight_mean": (
-                        sum(self.weights_played) / len(self.weights_played)
-                        if self.weights_played
-                        else math.nan
-                    ),
-                }
-            )
-        self.finished, self.losses, self.weights_played = [], [], []
-        self.points += 1
-        return Point(record, self.frames)
-
-    def save_due(self) -> bool:
-        return self.saves.due(SAVE_EVERY_S)
 
     # ------------------------------------------------------------- checkpoints
 
     def checkpoint(self) -> dict[str, Any]:
-        state: dict[str, Any] = {
-            "frames": self.frames,
-            "points": self.points,
-            "episodes": self.episodes,
-            "events": [self.events, self.positive],
-            "trainer_seconds": self.trainer_seconds,
-            "dqn": self.dqn.state_dict(),
-            "explore": None if self.explore is None else self.explore.state_dict(),
-            "fusion": self.fusion.state_dict(),
-            "reward_fusion": self.reward_fusion.get_extra_state(),
-            "rng": torch.get_rng_state(),
-        }
-        if self.taught:
-            state.update(
-                human=self.human.state_dict(),
-                feedback=self.feedback_transform.get_extra_state(),
-                log_seq=self.log.last_seq,
-            )
+        state = self.common_state()
+        state.update(
+            dqn=self.dqn.state_dict(), explore=None if self.explore is None else self.explore.state_dict()
+        )
         return {"state": state, "policy": self.policy_payload()}
 
     def _load(self, state: dict[str, Any]) -> None:
-        self.frames, self.points, self.episodes = (int(state[k]) for k in ("frames", "points", "episodes"))
-        self.events, self.positive = (int(v) for v in state["events"])
-        self.trainer_seconds = float(state["trainer_seconds"])
         self.dqn.load_state_dict(state["dqn"])
         if self.explore is not None:
             self.explore.load_state_dict(state["explore"])
-        self.fusion.load_state_dict(state["fusion"])
-        self.reward_fusion.set_extra_state(state["reward_fusion"])
-        torch.set_rng_state(state["rng"])
-        if self.taught:
-            self.human.load_state_dict(state["human"])
-            self.feedback_transform.set_extra_state(state["feedback"])
-            self.log.resume(state["log_seq"], regenerated=True)
-
-    def fusion_payload(self) -> dict[str, Any] | None:
-        """How ``evaluate.py`` fuses the saved H^ with Q (None: Q alone)."""
-        if not self.taught:
-            return None
-        return {
-            "scheme": self.fusion.decision,
-            "scaling": self.fusion.scaling,
-            "weight": float(self.fusion.weight()[0]),
-            "q_spread": float(self.fusion.q_spread[0]),
-            "human": str(self.cfg.human.name),
-        }
+        self.load_common_state(state)
 
     # ------------------------------------------------------------------ results
-
-    def report(self, final: dict[str, Any]) -> list[str]:
-        low, high = final.get(f"{self.score_key}_ci95_low"), final.get(f"{self.score_key}_ci95_high")
-        lines = [
-            f"Done: {final['frames']} frames; greedy policy {final[f'{self.score_key}_mean']:.2f} "
-            f"{self.score_unit} (95% CI {low:.2f}..{high:.2f} over {self.eval_episodes} fresh "
-            f"{self.episode_word}s)"
-        ]
-        curve = [r for r in self.history if self.x_key in r]
-        if len(curve) > 1:
-            shown = ", ".join(f"{r[f'{self.score_key}_mean']:.1f}" for r in curve)
-            lines.append(f"Curve (greedy {self.score_unit} every {self.eval_every} frames): {shown}")
-        if self.taught:
-            lines.append(
-                f"Feedback:         {self.events} events of the "
-                f"{TRAINER_LABELS.get(self.cfg.trainer.name, self.cfg.trainer.name)} "
-                f"(fusion={self.cfg.fusion.name}, human={self.cfg.human.name}, "
-                f"weight on H^ now {float(self.fusion.weight()[0]):.2f})"
-            )
-            lines.append(f"Feedback log:     {self.log.path}")
-        return lines
-
-    score_unit: ClassVar[str] = ""
-
-    @property
-    def eval_episodes(self) -> int:
-        return int(self.cfg.agent.eval_episodes)
-
-    def score(self, final: dict[str, Any]) -> float | None:
-        return final.get(f"{self.score_key}_mean")
-
-    def hparam_metrics(self, final: dict[str, Any]) -> dict[str, float]:
-        return {f"hparam/{self.score_key.split('/')[-1]}": final[f"{self.score_key}_mean"]}
 
     @property
     def stop_requested(self) -> bool:

@@ -55,6 +55,7 @@ SCORE_KEY = "eval/greedy_return"  # the points of every domain=gym learner
 
 __all__ = [
     "GymDQN",
+    "GymTaskParts",
     "greedy_returns",
     "gym_env",
     "input_scale",
@@ -89,7 +90,26 @@ def observation(td: TensorDictBase) -> torch.Tensor:
     return td.get(keys.OBSERVATION)
 
 
-class GymDQN(DeepQLearner):
+class GymTaskParts:
+    """What every ``domain=gym`` learner reads of its task, each built once from ``cfg``: the task, its
+    spaces and the inputs' scale (:func:`input_scale`)."""
+
+    cfg: DictConfig
+
+    @cached_property
+    def task(self) -> GymTask:
+        return make_gym_task(self.cfg)
+
+    @cached_property
+    def spaces(self) -> TaskSpaces:
+        return gym_spaces(self.cfg)
+
+    @cached_property
+    def scale(self) -> list[float]:
+        return input_scale(self.spaces)
+
+
+class GymDQN(GymTaskParts, DeepQLearner):
     """DQN over the observation of any discrete-action task on ``agent.boards`` copies (module docstring)."""
 
     domain = "gym"
@@ -109,18 +129,6 @@ class GymDQN(DeepQLearner):
     score_key = SCORE_KEY
     score_unit = "return per episode"
     episode_word = "episode"
-
-    @cached_property
-    def task(self) -> GymTask:
-        return make_gym_task(self.cfg)
-
-    @cached_property
-    def spaces(self) -> TaskSpaces:
-        return gym_spaces(self.cfg)
-
-    @cached_property
-    def scale(self) -> list[float]:
-        return input_scale(self.spaces)
 
     @property
     def seconds_per_step(self) -> float:

@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import copy
 import math
-from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -57,19 +56,18 @@ from hfrl_torch.agents.policies import export_policy
 from hfrl_torch.agents.ppo import PPO
 from hfrl_torch.common.logger import Logger
 from hfrl_torch.common.seeding import component_seed
-from hfrl_torch.common.stats import summarize
-from hfrl_torch.envs.gym_task import GymTask, TaskSpaces, make_gym_batch
-from hfrl_torch.experiment.checks import check_gym_ppo, gym_spaces
+from hfrl_torch.envs.gym_task import make_gym_batch
+from hfrl_torch.experiment.checks import check_gym_ppo
 from hfrl_torch.experiment.factories import (
     make_deep_tamer,
     make_feedback_wiring,
     make_fusion,
-    make_gym_task,
     make_gym_trainer,
 )
-from hfrl_torch.experiment.learners.gym_dqn import gym_env, input_scale, observation_mlp, play_returns
+from hfrl_torch.experiment.learners.deep_q import CollectorLearner
+from hfrl_torch.experiment.learners.gym_dqn import SCORE_KEY, GymTaskParts, greedy_returns, observation_mlp
 from hfrl_torch.experiment.learners.tetris_games import TRAINER_LABELS
-from hfrl_torch.experiment.run import Learner, Point, WallClockSaves
+from hfrl_torch.experiment.run import Point, WallClockSaves
 from hfrl_torch.fusion.fusion import Fusion
 from hfrl_torch.fusion.transform import FeedbackFusion
 from hfrl_torch.models.mlp import ActionMLP
@@ -77,21 +75,18 @@ from hfrl_torch.trainers.transform import HumanFeedback
 
 __all__ = ["GymPPO"]
 
-SAVE_EVERY_S = 10.0  # wall seconds between checkpoints
-SCORE = "eval/greedy_return"
-
 
 def _observation(td: TensorDictBase) -> torch.Tensor:
     return td.get(keys.OBSERVATION)
 
 
-class GymPPO(Learner):
+class GymPPO(GymTaskParts, CollectorLearner):
     """PPO over the observation of any discrete-action task on ``agent.boards`` copies (module docstring)."""
 
     domain = "gym"
     agent = "ppo"
-    unit = "frame"
-    x_key = "frames"
+    score_key = SCORE_KEY
+    score_unit = "return per episode"
     default_scaling = "none"  # logits + w H^ raw: H^ = 1 at w = 1 multiplies an action's odds by e
 
     @classmethod
@@ -170,27 +165,7 @@ class GymPPO(Learner):
         self.batches = iter(self.collector)
         self.saves = WallClockSaves()
 
-    @cached_property
-    def task(self) -> GymTask:
-        return make_gym_task(self.cfg)
-
-    @cached_property
-    def spaces(self) -> TaskSpaces:
-        return gym_spaces(self.cfg)
-
-    @cached_property
-    def scale(self) -> list[float]:
-        return input_scale(self.spaces)
-
     # ---------------------------------------------------------------- the loop
-
-    @property
-    def total(self) -> float:
-        return self.frames_total
-
-    @property
-    def position(self) -> float:
-        return self.frames
 
     @property
     def description(self) -> str:
@@ -236,97 +211,33 @@ class GymPPO(Learner):
     def greedy_evaluation(self) -> dict[str, float]:
         """The greedy policy (argmax of the fused logits, the fusion in evaluation mode) on the same fresh
         episodes at every point."""
-        env = gym_env(self.task, int(self.cfg.agent.eval_episodes), component_seed(self.seed, "eval_games"))
-        try:
-            with set_exploration_type(ExplorationType.DETERMINISTIC):
-                returns = play_returns(env, self.policy, self.fusion)
-        finally:
-            env.close()
-        s = summarize(returns)
-        return {f"{SCORE}_{k}": s[k] for k in ("mean", "median", "ci95_low", "ci95_high")}
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            return greedy_returns(self.task, self.eval_episodes, self.seed, self.policy, self.fusion)
 
-    def _point(self) -> Point:
-        evaluation = self.greedy_evaluation()
-        done = summarize(torch.tensor(self.finished, dtype=torch.float64), floor=0.0) if self.finished else {}
+    def agent_record(self) -> dict[str, float]:
         losses = {
             f"train/{k}": sum(x[k] for x in self.losses) / len(self.losses) if self.losses else math.nan
             for k in ("loss", "loss_objective", "loss_critic", "entropy")
         }
-        record: dict[str, Any] = {
-            "frames": self.frames,
-            **evaluation,
-            "train/episodes": self.episodes,
-            "train/return": done.get("mean", math.nan),
-            **losses,
-            "train/updates": self.ppo.updates,
-        }
-        if self.taught:
-            weight = float(self.fusion.weight()[0])
-            played = self.weights_played
-            record.update(
-                {
-                    "feedback_events": float(self.events),
-                    "trainer_minutes": self.trainer_seconds / 60.0,
-                    "weight": weight,
-                    "feedback/positive_share": self.positive / self.events if self.events else 0.0,
-                    "fusion/weight_mean": weight,
-                    "fusion/played_weight_mean": sum(played) / len(played) if played else math.nan,
-                }
-            )
-        self.finished, self.losses, self.weights_played = [], [], []
-        self.points += 1
-        return Point(record, self.frames)
-
-    def save_due(self) -> bool:
-        return self.saves.due(SAVE_EVERY_S)
+        return {**losses, "train/updates": self.ppo.updates}
 
     # ------------------------------------------------------------- checkpoints
 
     def checkpoint(self) -> dict[str, Any]:
-        state: dict[str, Any] = {
-            "frames": self.frames,
-            "points": self.points,
-            "episodes": self.episodes,
-            "events": [self.events, self.positive],
-            "trainer_seconds": self.trainer_seconds,
-            "ppo": self.ppo.state_dict(),
-            "fusion": self.fusion.state_dict(),
-            "reward_fusion": self.reward_fusion.get_extra_state(),
-            "rng": torch.get_rng_state(),
+        return {
+            "state": {**self.common_state(), "ppo": self.ppo.state_dict()},
+            "policy": self.policy_payload(),
         }
-        if self.taught:
-            state.update(
-                human=self.human.state_dict(),
-                feedback=self.feedback_transform.get_extra_state(),
-                log_seq=self.log.last_seq,
-            )
-        return {"state": state, "policy": self.policy_payload()}
 
     def _load(self, state: dict[str, Any]) -> None:
-        self.frames, self.points, self.episodes = (int(state[k]) for k in ("frames", "points", "episodes"))
-        self.events, self.positive = (int(v) for v in state["events"])
-        self.trainer_seconds = float(state["trainer_seconds"])
         self.ppo.load_state_dict(state["ppo"])
-        self.fusion.load_state_dict(state["fusion"])
-        self.reward_fusion.set_extra_state(state["reward_fusion"])
-        torch.set_rng_state(state["rng"])
-        if self.taught:
-            self.human.load_state_dict(state["human"])
-            self.feedback_transform.set_extra_state(state["feedback"])
-            self.log.resume(state["log_seq"], regenerated=True)
+        self.load_common_state(state)
 
     def policy_payload(self) -> dict[str, Any]:
         """What ``evaluate.py`` plays: the policy network greedily (and, with a trainer, fused with H^ by the
         run's rule at its last weight)."""
-        fusion = human = None
+        human = None
         if self.taught:
-            fusion = {
-                "scheme": self.fusion.decision,
-                "scaling": self.fusion.scaling,
-                "weight": float(self.fusion.weight()[0]),
-                "q_spread": float(self.fusion.q_spread[0]),
-                "human": str(self.cfg.human.name),
-            }
             cells = list(self.cfg.human.cells)
             human = {"kind": "mlp", "cells": cells, "model": self.human.model.state_dict()}
         return export_policy(
@@ -337,37 +248,9 @@ class GymPPO(Learner):
             scale=list(self.scale),
             cells=list(self.cfg.agent.cells),
             actor=self.ppo.actor_net.state_dict(),
-            fusion=fusion,
+            fusion=self.fusion_payload(),
             human=human,
         )
-
-    # ------------------------------------------------------------------ results
-
-    def report(self, final: dict[str, Any]) -> list[str]:
-        low, high = final.get(f"{SCORE}_ci95_low"), final.get(f"{SCORE}_ci95_high")
-        lines = [
-            f"Done: {final['frames']} frames; greedy policy {final[f'{SCORE}_mean']:.2f} return per episode "
-            f"(95% CI {low:.2f}..{high:.2f} over {self.cfg.agent.eval_episodes} fresh episodes)"
-        ]
-        curve = [r for r in self.history if self.x_key in r]
-        if len(curve) > 1:
-            shown = ", ".join(f"{r[f'{SCORE}_mean']:.1f}" for r in curve)
-            lines.append(f"Curve (greedy return per episode every {self.eval_every} frames): {shown}")
-        if self.taught:
-            lines.append(
-                f"Feedback:         {self.events} events of the "
-                f"{TRAINER_LABELS.get(self.cfg.trainer.name, self.cfg.trainer.name)} "
-                f"(fusion={self.cfg.fusion.name}, human={self.cfg.human.name}, "
-                f"weight on H^ now {float(self.fusion.weight()[0]):.2f})"
-            )
-            lines.append(f"Feedback log:     {self.log.path}")
-        return lines
-
-    def score(self, final: dict[str, Any]) -> float | None:
-        return final.get(f"{SCORE}_mean")
-
-    def hparam_metrics(self, final: dict[str, Any]) -> dict[str, float]:
-        return {"hparam/greedy_return": final[f"{SCORE}_mean"]}
 
     def close(self) -> None:
         self.collector.shutdown()

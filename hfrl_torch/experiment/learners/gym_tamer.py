@@ -39,24 +39,23 @@ from hfrl_torch.agents.policies import export_policy
 from hfrl_torch.common.logger import Logger
 from hfrl_torch.common.seeding import component_seed
 from hfrl_torch.common.stats import summarize
-from hfrl_torch.experiment.checks import check_gym_tamer, gym_spaces
+from hfrl_torch.experiment.checks import check_gym_tamer
 from hfrl_torch.experiment.factories import (
     make_deep_tamer,
     make_feedback_wiring,
     make_fusion,
-    make_gym_task,
     make_gym_trainer,
 )
 from hfrl_torch.experiment.learners.gym_dqn import (
     SCORE_KEY,
+    GymTaskParts,
     greedy_returns,
     gym_env,
-    input_scale,
     observation,
     observation_mlp,
 )
 from hfrl_torch.experiment.learners.tetris_games import TRAINER_LABELS
-from hfrl_torch.experiment.run import Learner, Point
+from hfrl_torch.experiment.run import FramesLearner, Point
 from hfrl_torch.fusion.transform import FusionModule
 
 __all__ = ["GymTamer"]
@@ -64,14 +63,12 @@ __all__ = ["GymTamer"]
 DECISION_KEYS = (keys.HUMAN_VALUES, keys.FUSED_VALUES, keys.FUSION_WEIGHT)  # the policy's, not the env's
 
 
-class GymTamer(Learner):
+class GymTamer(GymTaskParts, FramesLearner):
     """Deep TAMER alone on ``agent.boards`` copies of a task, taught by the simulated oracle (module
     docstring)."""
 
     domain = "gym"
     agent = "tamer"
-    unit = "frame"
-    x_key = "frames"
 
     @classmethod
     def check(cls, cfg: DictConfig) -> None:
@@ -85,8 +82,6 @@ class GymTamer(Learner):
         self.boards, self.frames_total = int(a.boards), int(a.frames)
         self.eval_every, self.eval_episodes = int(a.eval_every), int(a.eval_episodes)
         self.seconds_per_step = float(cfg.domain.seconds_per_step)
-        self.task, self.spaces = make_gym_task(cfg), gym_spaces(cfg)
-        self.scale = input_scale(self.spaces)
         model = observation_mlp(self.spaces, list(cfg.human.cells), self.scale)
         self.human = make_deep_tamer(cfg, model, observation, self.boards)
         self.fusion = make_fusion(cfg, type(self), 1, option="human_only")
@@ -131,14 +126,6 @@ class GymTamer(Learner):
     @property
     def episodes(self) -> int:
         return int(self.games.sum())
-
-    @property
-    def total(self) -> float:
-        return self.frames_total
-
-    @property
-    def position(self) -> float:
-        return self.frames
 
     @property
     def description(self) -> str:
