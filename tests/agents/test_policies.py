@@ -26,7 +26,7 @@ TETRIS = ["domain.width=6", "domain.height=8", "logger=none"]
 KEEPAWAY = ["domain=keepaway", "logger=none"]
 DQN = ["agent=dqn", "agent.boards=2", "agent.cells=[8]", "agent.eval_episodes=2"]
 TAUGHT_DQN = ["trainer=oracle", "fusion=linear", "human=mlp", "human.cells=[8]"]
-SARSA = ["agent=sarsa", "agent.learners=2", "agent.table_bits=10"]
+SARSA = ["agent=sarsa", "agent.learners=2", "agent.table_bits=10", "agent.hours=0.05"]
 GYM = ["domain=gym", "logger=none", "trainer.reference=examples.cartpole:reference"]
 PPO = ["agent=ppo", "agent.boards=2", "agent.cells=[8]", "agent.eval_episodes=2", "agent.minibatch_size=8"]
 

@@ -205,7 +205,9 @@ def test_resume_refuses_changes_that_redefine_the_run(trained, tmp_path):
     out = run("train.py", f"resume={trained}", "domain.features=dt", "agent.iterations=4")
     assert out.returncode == 2
     assert "domain.features=dt cannot change when resuming" in out.stderr
-    allowed = "allowed: agent.iterations, agent.hours, agent.episodes, agent.games, threads, device, "
+    allowed = (
+        "allowed: agent.iterations, agent.hours, agent.episodes, agent.games, agent.frames, threads, device, "
+    )
     allowed += "domain.kernels, agent.kernels, logger.backend"
     assert allowed in out.stderr
 

@@ -33,7 +33,7 @@ def test_presses_drained_from_the_page_are_booked_as_effort(tmp_path, monkeypatc
     monkeypatch.setattr(  # not served: the presses go straight onto the session's queue
         factories,
         "make_live_teaching",
-        lambda cfg, view, fusion, drain: LiveTeaching(
+        lambda cfg, view, fusion, drain, *_: LiveTeaching(
             TeachingServer(session, port=0), session, drain(session)
         ),
     )
