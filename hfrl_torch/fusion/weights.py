@@ -199,19 +199,18 @@ def check_weight(
     name = str(cfg.fusion.name)
     weight = OmegaConf.select(cfg, "fusion.weight", default="adaptive")
     if name in WEIGHT_UNUSED:  # fusion.weight is unused; still one of the allowed kinds (sweeps set it)
-        if isinstance(weight, str):
-            if weight not in WEIGHT_OPTIONS:
-                raise _bad_option(weight)
-        else:
+        if not isinstance(weight, str):
             _check_constant(cfg)
-        if name in UNWEIGHTED:
-            return
+        elif weight not in WEIGHT_OPTIONS:
+            raise _bad_option(weight)
+    if name in UNWEIGHTED:
+        return
     kind = WEIGHT_KINDS[weight_kind(cfg, evidence)]
     needed = kind.evidence
     if needed is not None and (needed not in evidence or OPTIONS[name].reward != "none"):
         agents = ", ".join(f"agent={a}" for a in (givers or {}).get(needed, ()))
         decision = ", ".join(
-            o for o, rules in OPTIONS.items() if rules.reward == "none" and o not in (*UNWEIGHTED, "annealed")
+            o for o, rules in OPTIONS.items() if rules.reward == "none" and o not in WEIGHT_UNUSED
         )
         raise ConfigError(
             f"fusion.weight={weight} with agent={cfg.agent.name} fusion={name} is invalid: it needs a "
