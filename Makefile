@@ -5,7 +5,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: train test lint bench clean
+.PHONY: train test test-parallel test-serial lint bench clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -24,8 +24,12 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff format --check .
 
 # The suite on both cores (pytest-xdist), then the latency and browser tests alone.
-test: lint
+test: lint test-parallel test-serial
+
+test-parallel: $(STAMP)
 	$(VENV)/bin/pytest -q -n 2 --dist worksteal -m "not serial"
+
+test-serial: $(STAMP)
 	$(VENV)/bin/pytest -q -m serial
 
 bench: $(STAMP)

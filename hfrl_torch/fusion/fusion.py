@@ -38,7 +38,14 @@ from hfrl_torch.fusion.schemes import (
 )
 from hfrl_torch.fusion.trust import MatchCounter
 
-__all__ = ["CONTROL_SHARING_THRESHOLD", "MIN_SPREAD", "SCALINGS", "Fusion", "choosable"]
+__all__ = [
+    "CONTROL_SHARING_THRESHOLD",
+    "MIN_SPREAD",
+    "SCALINGS",
+    "Fusion",
+    "changed_by_teaching",
+    "choosable",
+]
 
 SCALINGS = ("none", "decision", "spread")
 MIN_SPREAD = 1.0  # R units: H^ keeps a say before R has learned to separate the actions
@@ -53,6 +60,22 @@ def choosable(mask: Tensor, terminal: Tensor | None = None) -> Tensor:
         return mask
     safe = mask & ~terminal
     return torch.where(safe.any(-1, keepdim=True), safe, mask)
+
+
+def changed_by_teaching(
+    env_values: Tensor, action: Tensor, mask: Tensor, fused_values: Tensor | None = None
+) -> Tensor:
+    """[M] long: the action the environment's values alone [M, A] choose where they rate the one taken
+    lower (the teaching changed the move), -1 elsewhere. With ``fused_values``, only where the taken action
+    is also the fused values' best: an exploring move is not the teaching's."""
+    env = env_values.masked_fill(~mask, -torch.inf)
+    best = env.argmax(-1)
+    taken = action.view(-1, 1)
+    changed = env.gather(-1, best.view(-1, 1)).squeeze(-1) > env.gather(-1, taken).squeeze(-1) + 1e-9
+    if fused_values is not None:
+        fused = fused_values.masked_fill(~mask, -torch.inf)
+        changed &= fused.gather(-1, taken).squeeze(-1) >= fused.amax(-1) - 1e-9
+    return torch.where(changed, best, torch.full_like(best, -1))
 
 
 class Fusion:

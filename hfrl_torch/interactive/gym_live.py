@@ -31,6 +31,7 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
+import torch
 from PIL import Image
 from tensordict import TensorDictBase
 from torchrl.envs.transforms import Transform
@@ -38,6 +39,7 @@ from torchrl.envs.transforms import Transform
 from hfrl_torch import keys
 from hfrl_torch.common.errors import CheckpointError
 from hfrl_torch.feedback.events import FeedbackEvent
+from hfrl_torch.fusion.fusion import changed_by_teaching
 from hfrl_torch.interactive.live import BrowserQueueTrainer
 from hfrl_torch.interactive.session import TeachingSession
 from hfrl_torch.interactive.timeline import credit_time
@@ -147,6 +149,10 @@ class GymWatcher(Transform):
         self._last_frame = -float("inf")
         self._progress_at: tuple[float, float] | None = None  # (wall, steps done) where the pace was measured
         self._rate: float | None = None  # steps per wall second over the last second or more
+        self.without_you: int | None = (
+            None  # the last step's action by Q alone, where the teaching changed it
+        )
+        self.steered = [0, 0]  # board 0's steps of this episode the teaching changed, and all of them
         session.set_live(False)  # nothing to judge before the first frame
 
     def watch(self, env: gym.Env) -> FrameKeeper:
@@ -163,8 +169,27 @@ class GymWatcher(Transform):
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         return tensordict_reset
 
+    def _steer(self, tensordict: TensorDictBase) -> None:
+        """Count board 0's step, and whether the teaching changed its action: Q alone (``keys.ENV_VALUES``)
+        rates another higher, and the fused values chose the one taken (a policy without them: unknown)."""
+        self.steered[1] += 1
+        self.without_you = None
+        env, fused = tensordict.get(keys.ENV_VALUES, None), tensordict.get(keys.FUSED_VALUES, None)
+        if env is None or fused is None:
+            return
+        n = env.shape[-1]
+        env, fused = env.reshape(-1, n)[:1], fused.reshape(-1, n)[:1]
+        mask = tensordict.get(keys.ACTION_MASK, None)
+        mask = torch.ones_like(env, dtype=torch.bool) if mask is None else mask.reshape(-1, n)[:1]
+        action = tensordict.get(keys.ACTION).reshape(-1)[:1]
+        best = int(changed_by_teaching(env, action, mask, fused))
+        if best >= 0:
+            self.steered[0] += 1
+            self.without_you = best
+
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         self.steps += 1
+        self._steer(tensordict)
         ended = bool(next_tensordict.get(keys.DONE).reshape(-1)[0])
         frame = None if self.keeper is None else self.keeper.take()
         if self.session.page_open():
@@ -176,6 +201,7 @@ class GymWatcher(Transform):
                 self._show(frame, tensordict, next_tensordict, ended, teaching)
         if ended:
             self.episode += 1
+            self.steered = [0, 0]
         return next_tensordict
 
     def _show(
@@ -202,6 +228,8 @@ class GymWatcher(Transform):
                 "return": round(returned, 4),
                 "ended": ended,
                 "weight": None if self.weight is None else float(self.weight()),
+                "without_you": None if self.without_you is None else f"action {self.without_you}",
+                "steered": list(self.steered),
             }
         )
         label = f"action {action} at step {step + 1} of episode {self.episode + 1}"

@@ -61,6 +61,16 @@ CYCLES_PER_SECOND = 10
 UNPACED_FRAME_S = 0.2  # wall seconds between frames while nobody teaches
 RECENT_EPISODES = 10  # episodes in the page's mean hold time
 PROGRESS_S = 1.0  # wall seconds between the page's updates of what is left
+ORDINALS = ("nearest", "second-nearest", "third-nearest", "fourth-nearest", "fifth-nearest")
+
+
+def move_words(action: int) -> str:
+    """What a keeper's macro-action would have done, as the page says it (0 holds the ball, k >= 1 passes
+    to the k-th nearest teammate)."""
+    if action == 0:
+        return "would have held the ball"
+    nearest = ORDINALS[action - 1] if action <= len(ORDINALS) else f"{action}th-nearest"
+    return f"would have passed to its {nearest} teammate"
 
 
 class BrowserKeeperTrainer:
@@ -229,6 +239,11 @@ class KeepawayWatcher:
         self._last_frame = -math.inf
         self._progress_at: tuple[float, float] | None = None  # (wall, simulated s) of the last update
         self._decided: tuple[int, int] | None = None  # (episode, decision) of the last decision shown
+        self._alone: int | None = None  # the coming decision's move by Q alone, where the teaching changed it
+        self.without_you: str | None = (
+            None  # the last decision's move by Q alone, where the teaching changed it
+        )
+        self.steered = [0, 0]  # decisions of the field's episode the teaching changed, and all of them
         self.session.set_live(False)  # nothing to judge before the first frame
 
     @property
@@ -248,6 +263,11 @@ class KeepawayWatcher:
 
         sim.step = step_and_show  # type: ignore[method-assign]
 
+    def deciding(self, alone: int) -> None:
+        """The field's keeper decides in the coming step; ``alone``: the move Q alone would make where the
+        teaching changed it (:func:`~hfrl_torch.fusion.fusion.changed_by_teaching`), else -1."""
+        self._alone = alone if alone >= 0 else None
+
     def cycle(self, state: KeepawayState) -> None:
         """After a simulator cycle: wait for its turn while a person teaches, then show it."""
         self.block_cycles += 1
@@ -262,6 +282,12 @@ class KeepawayWatcher:
                 if self.target < 0
                 else f"keeper {holder + 1} passes to keeper {self.target + 1}"
             )
+            self.steered[1] += 1
+            self.steered[0] += self._alone is not None
+            self.without_you = (
+                None if self._alone is None else f"keeper {holder + 1} {move_words(self._alone)}"
+            )
+            self._alone = None
         if not self.session.page_open():
             return
         teaching = self.session.teaching()
@@ -340,6 +366,8 @@ class KeepawayWatcher:
             "mean_hold_s": sum(self.recent) / len(self.recent) if self.recent else None,
             "weight": None if self.weight is None else float(self.weight()),
             "real_time": self.real_time_speed,
+            "without_you": self.without_you,
+            "steered": list(self.steered) if self.steered[1] else None,
         }
 
     def __call__(self, td: TensorDictBase) -> None:
@@ -350,6 +378,7 @@ class KeepawayWatcher:
         if not bool(after[keys.DONE].reshape(-1)[f]):
             return
         self.action, self.target = "-", -1
+        self.without_you, self.steered = None, [0, 0]
         seconds = int(after[keys.EPISODE_CYCLES].reshape(-1)[f]) / CYCLES_PER_SECOND
         self.recent.append(seconds)
         self.block.append(seconds)

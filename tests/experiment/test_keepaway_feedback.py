@@ -107,7 +107,7 @@ def test_feedback_waits_for_its_arrival_and_credits_the_decisions_before_it():
 def test_reward_shaping_on_the_env_adds_w_times_h_of_each_keepers_previous_decision():
     """Each keeper's SMDP reward, and at the end every keeper's last one, plus w H^ of that keeper's own
     previous decision; checked against the same env without the transform, step by step."""
-    config = KeepawayConfig(decision_period_cycles=5, **TASKS["exact"])
+    config = KeepawayConfig(decision_period_cycles=5, kernels="cycle", **TASKS["exact"])
     raw = KeepawayEnv(2, config, seed=3, sync="any")
     fusion = Fusion.from_option("reward_shaping", ConstantWeight([2.0, 2.0]))
     shaped = TransformedEnv(

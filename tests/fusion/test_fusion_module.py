@@ -13,6 +13,7 @@ from torchrl.envs import GymEnv, SerialEnv
 
 from hfrl_torch import keys
 from hfrl_torch.fusion import ConstantWeight, Fusion, FusionModule, TrustWeight
+from hfrl_torch.fusion.fusion import changed_by_teaching
 
 R = torch.tensor([[1.0, 2.0, 0.0], [3.0, 0.0, 1.0]])
 H = torch.tensor([[2.0, 0.0, 0.0], [0.0, 0.0, 4.0]])
@@ -160,3 +161,16 @@ def test_unbatched_cartpole_with_h_deciding_follows_h():
     assert torch.equal(td[keys.ACTION].argmax(-1), td["h_values"].argmax(-1))
     assert td.shape[0] < 20  # H^ pushes the way the pole leans: it falls within 20 steps
     env.close()
+
+
+def test_a_move_is_said_to_be_changed_by_the_teaching_only_where_the_environment_alone_prefers_another():
+    env = torch.tensor(
+        [[1.0, 3.0, 2.0, 5.0], [1.0, 3.0, 3.0, 0.0], [4.0, 1.0, 0.0, 0.0]], dtype=torch.float64
+    )
+    mask = torch.tensor([[True, True, True, False], [True] * 4, [True] * 4])
+    # the masked 5.0 is no choice, so 3.0 beats the 2.0 played; a tie is no change; R's own choice is none
+    assert changed_by_teaching(env, torch.tensor([2, 2, 0]), mask).tolist() == [1, -1, -1]
+    fused = torch.tensor([[0.0, 0.0, 9.0, 0.0], [0.0] * 4, [0.0, 2.0, 0.0, 1.0]])
+    # with the fused values: a move they do not prefer explored, it was not the teaching's
+    assert changed_by_teaching(env, torch.tensor([2, 2, 3]), mask, fused).tolist() == [1, -1, -1]
+    assert changed_by_teaching(env, torch.tensor([2, 2, 1]), mask, fused).tolist() == [1, -1, 0]

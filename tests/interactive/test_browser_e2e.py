@@ -406,6 +406,11 @@ def test_keepaway_presses_are_filed_under_the_moment_shown_before_them_and_ctrl_
             "decisions"
         )
         presses = [_press_safely(page, key, margin=30) for key in ["/", "z"]]
+        page.wait_for_function("document.getElementById('steered').textContent !== ''", timeout=15_000)
+        steered = page.inner_text("#steered")  # what the teaching did to the keepers' decisions, in numbers
+        assert re.search(r"Your teaching changed (\d+) of their (\d+) decisions this episode\.$", steered), (
+            steered
+        )
         box = page.locator("#speed").bounding_box()
         page.mouse.click(box["x"] + 3, box["y"] + box["height"] / 2)  # the slowest speed, then keys
         presses.append(_press_safely(page, "/", margin=30))

@@ -17,13 +17,17 @@ from typing import Any
 import aiohttp
 import numpy as np
 import pytest
+import torch
 from PIL import Image
+from tensordict import TensorDict
 
+from hfrl_torch import keys
 from hfrl_torch.common.checkpoint import load_checkpoint
 from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.feedback.log import load_feedback_log
-from hfrl_torch.interactive.gym_live import png_data_url
+from hfrl_torch.interactive.gym_live import GymWatcher, png_data_url
 from hfrl_torch.interactive.journal import JOURNAL_NAME, read_journal
+from hfrl_torch.interactive.session import TeachingSession
 
 CARTPOLE = ("domain=gym", "domain.env_id=CartPole-v1", "agent=dqn")
 HELPERS = "tests.interactive.gym_live_helpers"
@@ -103,6 +107,7 @@ async def _teach(url: str, presses: int = 14) -> dict[str, Any]:
 def _taught(run_learner: Any, run_dir: Path, presses: int, checkpoint: Any = None) -> tuple[Any, Any, dict]:
     """The learner run in ``run_dir`` with a scripted page (:func:`_teach`) in another thread."""
     said: dict[str, Any] = {}
+    threads: list[threading.Thread] = []
 
     def page(learner: Any) -> None:
         def teach() -> None:
@@ -112,9 +117,12 @@ def _taught(run_learner: Any, run_dir: Path, presses: int, checkpoint: Any = Non
                 said["failed"] = repr(e)
                 learner.teaching.session.ending = "finishing"
 
-        threading.Thread(target=teach, daemon=True).start()
+        threads.append(threading.Thread(target=teach, daemon=True))
+        threads[-1].start()
 
     learner, final = run_learner(run_dir, *CARTPOLE, *LIVE, checkpoint=checkpoint, prepare=page)
+    for thread in threads:  # the run may end before the page has read its last message
+        thread.join(timeout=60)
     assert "failed" not in said, said.get("failed")
     return learner, final, said
 
@@ -155,6 +163,9 @@ def test_each_acknowledged_press_on_cartpole_is_logged_once_under_the_step_it_wa
     # the frames: the task's own rendering, in no other domain's words; the page's curve has its own axes
     frame = said["frames"][-1]
     assert _image(frame["image"]).shape == (400, 600, 3) and _image(frame["image"]).std() > 0
+    # what the teaching changed: counted over every step of the episode so far, and said as an action
+    assert all(f["steered"][1] == f["step"] and 0 <= f["steered"][0] <= f["step"] for f in said["frames"])
+    assert {f["without_you"] for f in said["frames"]} <= {None, "action 0", "action 1"}
     words = [f["action"] for f in said["frames"]] + [a["filed"] for a in acks]
     words += [said["config"][k] for k in ("task", "curve_x", "curve_y", "curve_note", "weight_sentence")]
     assert not [w for w in words if OTHER_DOMAINS.search(w)], words
@@ -202,3 +213,27 @@ def test_a_task_without_rgb_frames_is_one_line_before_the_run(compose_train, ove
         compose_train(*CARTPOLE, "trainer=interactive", *overrides)
     assert message in str(err.value) and "\n" not in str(err.value)
     compose_train(*CARTPOLE, "trainer=interactive", f"domain.make={HELPERS}:cartpole_with_frames")
+
+
+def test_the_watcher_counts_the_steps_the_teaching_changed_per_episode():
+    watcher = GymWatcher(TeachingSession(actions_per_s=5.0), seconds_per_step=0.2, total_steps=10)
+
+    def step(action: int, fused: list[float], done: bool = False) -> None:
+        td = TensorDict(
+            {
+                keys.ACTION: torch.tensor([action, 0]),
+                keys.ENV_VALUES: torch.tensor([[2.0, 1.0], [0.0, 5.0]]),
+                keys.FUSED_VALUES: torch.tensor([fused, [0.0, 0.0]]),
+            },
+            [2],
+        )
+        watcher._step(td, TensorDict({keys.DONE: torch.tensor([[done], [False]])}, [2]))
+
+    step(1, [0.0, 3.0])  # the fused values chose 1 where Q alone prefers 0: the teaching changed it
+    assert watcher.steered == [1, 1] and watcher.without_you == 0
+    step(0, [1.0, 0.0])  # Q's own choice
+    assert watcher.steered == [1, 2] and watcher.without_you is None
+    step(1, [3.0, 0.0])  # an exploring move: not the teaching's
+    assert watcher.steered == [1, 3] and watcher.without_you is None
+    step(1, [0.0, 3.0], done=True)
+    assert watcher.steered == [0, 0] and watcher.episode == 1  # counted per episode

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import threading
 
 import pytest
@@ -176,6 +177,34 @@ def test_frame_has_what_the_page_draws_and_the_curve_gets_hold_times():
     assert json.loads(json.dumps(session.latest()[1]))["mean_hold_s"] == 7.0
 
 
+def test_the_page_says_which_decisions_the_teaching_changed_and_counts_them_per_episode():
+    _, _, session = _fake_clock()
+    session.connect()
+    records = KeepawayRecords(1, 3)
+    sim = KeepawaySimulator(1, CONFIG, seed=1)
+    watcher = KeepawayWatcher(BrowserKeeperTrainer(session), records, CONFIG)
+    watcher.attach(sim)
+
+    def decide(alone: int) -> dict:
+        decided = watcher.steered[1]
+        watcher.deciding(alone)
+        while watcher.steered[1] == decided:
+            sim.step(torch.tensor([1]))
+        return json.loads(json.dumps(session.latest()[1]))
+
+    frame = decide(0)  # Q alone would have held the ball
+    assert re.fullmatch(r"keeper [123] would have held the ball", frame["without_you"]) and frame[
+        "steered"
+    ] == [1, 1]
+    frame = decide(-1)  # the teaching did not change this one
+    assert frame["without_you"] is None and frame["steered"] == [1, 2]
+    assert decide(2)["without_you"].endswith(" would have passed to its second-nearest teammate")
+    ended = {keys.DONE: torch.tensor([[True]]), keys.EPISODE_CYCLES: torch.tensor([80])}
+    watcher(TensorDict({"next": ended}, batch_size=[1]))
+    assert watcher.frame(sim.state)["steered"] is None  # counted per episode
+    assert watcher.frame(sim.state)["without_you"] is None
+
+
 def test_a_taught_loop_learns_from_presses_at_real_time(tmp_path, monkeypatch, run_learner):
     clock, _, session = _fake_clock(0.0)
     presses = [(3.0, 1.0), (6.0, -1.0), (9.0, 1.0)]
@@ -195,7 +224,13 @@ def test_a_taught_loop_learns_from_presses_at_real_time(tmp_path, monkeypatch, r
         ),
     )
     over = ["domain=keepaway", "trainer=interactive", "trainer.wait_for_page_s=0", "agent.table_bits=12"]
+    told: list[int] = []
+    deciding = KeepawayWatcher.deciding
+    monkeypatch.setattr(
+        KeepawayWatcher, "deciding", lambda self, alone: told.append(alone) or deciding(self, alone)
+    )
     learner, _ = run_learner(tmp_path, *over, f"agent.hours={150 / 36000}", "fusion.weight=0.5")
+    assert told and set(told) <= {-1, 0, 1, 2}  # each decision of the watched field, with Q's move or -1
     assert 14.85 <= clock[0] <= 17.0  # 150+ cycles at real time: the last step may run a few more
     assert not presses and learner.feedback.tolist() == [3] and learner.tamer.model.weight.abs().sum() > 0
     events = load_feedback_log(tmp_path / "feedback.jsonl")

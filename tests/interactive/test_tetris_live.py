@@ -21,7 +21,6 @@ from hfrl_torch.envs.tetris.pieces import placement_table
 from hfrl_torch.envs.tetris.rules import TetrisRules
 from hfrl_torch.experiment import factories
 from hfrl_torch.experiment.cli import compose_config
-from hfrl_torch.experiment.learners import tetris_cem
 from hfrl_torch.feedback.credit import PreviousStep, credit_weights
 from hfrl_torch.feedback.events import FeedbackEvent
 from hfrl_torch.feedback.log import FeedbackLog, load_feedback_log
@@ -187,18 +186,6 @@ def test_a_taught_ce_round_files_each_press_under_the_placement_shown_before_it(
     assert [e.time for e in events] == [1.0, 1.5, 2.25]  # capped at the next placement's start
     assert session.curve == [[1.0, final["eval/mean_policy_lines_mean"], 1.0]]
     assert session.ending == "stopping" and session.queue.closed  # closed by the loop, as after a run
-
-
-def test_a_move_is_said_to_be_changed_by_the_teaching_only_where_the_environment_alone_prefers_another():
-    values = torch.tensor([[1.0, 3.0, 2.0, 5.0]], dtype=torch.float64)
-    td = TensorDict(
-        {keys.ENV_VALUES: values, keys.ACTION_MASK: torch.tensor([[True, True, True, False]])}, batch_size=[1]
-    )
-    changed = tetris_cem.CEMLearner._changed_by_teaching
-    assert changed(td, torch.tensor([2])) == 1  # the masked 5.0 is no choice; 3.0 beats the 2.0 played
-    assert changed(td, torch.tensor([1])) is None  # the environment's own choice
-    td[keys.ENV_VALUES] = torch.tensor([[1.0, 3.0, 3.0, 0.0]], dtype=torch.float64)
-    assert changed(td, torch.tensor([2])) is None  # a tie is not a change
 
 
 def test_the_page_counts_the_moves_the_teaching_changed(tmp_path):

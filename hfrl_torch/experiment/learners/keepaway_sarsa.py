@@ -77,6 +77,7 @@ from hfrl_torch.experiment.factories import (
 from hfrl_torch.experiment.learners.tetris_games import TRAINER_LABELS
 from hfrl_torch.experiment.run import Learner, Point
 from hfrl_torch.feedback.log import FeedbackLog
+from hfrl_torch.fusion.fusion import changed_by_teaching
 from hfrl_torch.fusion.transform import FeedbackFusion, FusionModule
 from hfrl_torch.interactive.keepaway_live import BrowserKeeperTrainer, KeepawayWatcher, wait_for_teacher
 from hfrl_torch.interactive.live import LiveTeaching
@@ -373,6 +374,14 @@ class SarsaKeepers(Learner):
             choose_by=fused,
             explore=self.fusion.explores,
         )
+        if self.watcher is not None:
+            watched = (rows == self.watcher.field).nonzero().view(-1)
+            if watched.numel():
+                i = watched[:1]
+                alone = changed_by_teaching(
+                    q[i].cpu(), chosen.view(-1)[i].cpu(), mask[i].cpu(), fused[i].cpu()
+                )
+                self.watcher.deciding(int(alone))
         estimate = td.get(keys.HUMAN_REWARD_ESTIMATE).clone()
         estimate[rows] = h.gather(1, chosen.cpu().view(-1, 1)).to(estimate)
         td.set(keys.HUMAN_REWARD_ESTIMATE, estimate)

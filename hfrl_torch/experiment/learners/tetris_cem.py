@@ -62,6 +62,7 @@ from hfrl_torch.experiment.factories import (
 from hfrl_torch.experiment.learners.tetris_games import TRAINER_LABELS
 from hfrl_torch.experiment.run import Learner, Point
 from hfrl_torch.feedback.log import FeedbackLog
+from hfrl_torch.fusion.fusion import changed_by_teaching
 from hfrl_torch.fusion.transform import FeedbackFusion, FusionModule
 from hfrl_torch.interactive.live import LiveTeaching
 from hfrl_torch.interactive.tetris_live import SLOW_REACTION_S, BrowserTetrisTrainer, TetrisPage
@@ -302,7 +303,10 @@ class CEMLearner(Learner):
             td.set(keys.ENV_VALUES, (feats * self.value_weights).sum(-1))
             td.set(keys.HUMAN_VALUES, self.human.model(placement_deltas(td)))
             action = self.choose(td).get(keys.ACTION)
-            alone = self._changed_by_teaching(td, action) if self.page is not None else None
+            alone = None
+            if self.page is not None:
+                best = int(changed_by_teaching(td[keys.ENV_VALUES][:1], action, td[keys.ACTION_MASK][:1]))
+                alone = None if best < 0 else best
             events = self.trainer.give(td, action, now, episode_t)
             self.human.record(td, action, now)
             self.channel.put_events(events)
@@ -333,14 +337,6 @@ class CEMLearner(Learner):
             self.human.learn(self.channel.deliver(math.inf))
         self.clock = now
         return totals
-
-    @staticmethod
-    def _changed_by_teaching(td: TensorDictBase, action: torch.Tensor) -> int | None:
-        """The placement the environment's values alone choose, where it beats the fused choice by them
-        (the teaching changed the move; None where it did not), for the page."""
-        values = td[keys.ENV_VALUES][0].masked_fill(~td[keys.ACTION_MASK][0], -math.inf)
-        best = int(values.argmax())
-        return best if float(values[best]) > float(values[int(action.reshape(-1)[0])]) + 1e-9 else None
 
     def _learn_due(self, td: TensorDictBase, now: float) -> None:
         td.update(self.channel.deliver(now))

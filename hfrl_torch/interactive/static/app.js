@@ -265,7 +265,8 @@ function arrow(g, [x0, y0], [tx, ty]) {
 
 function drawKeepaway(f) {
   $("columns").hidden = true;
-  $("steered").textContent = "";
+  $("steered").textContent = (f.without_you ? `Your teaching changed the last decision: without it, ${f.without_you}. ` : "") +
+    (f.steered ? `Your teaching changed ${f.steered[0]} of their ${f.steered[1]} decisions this episode.` : "");
   const c = $("view");
   if (c.width !== 400 || c.height !== 400) { c.width = 400; c.height = 400; }
   const g = c.getContext("2d");
@@ -296,7 +297,8 @@ function drawKeepaway(f) {
 // any Gymnasium task: the frame the task rendered itself, drawn when it has loaded (frames come in order)
 function drawGym(f) {
   $("columns").hidden = true;
-  $("steered").textContent = "";
+  $("steered").textContent = (f.without_you ? `Your teaching changed this move: on its own it would have taken ${f.without_you}. ` : "") +
+    (f.steered ? `Your teaching changed ${f.steered[0]} of its ${f.steered[1]} moves this episode.` : "");
   const img = new Image();
   img.onload = () => {
     if (S.frame !== f) return;  // a later frame came first

@@ -76,8 +76,12 @@ def test_partial_reset_changes_only_flagged_fields(sync: str, options: dict) -> 
         assert (after[keys.EPISODE_CYCLES][i].item() == 0) == (sync == "any")
 
 
-@pytest.mark.parametrize("batch", [6, 1])  # at B = 1 every reset restarts every field: TorchRL's other branch
-@pytest.mark.parametrize("options", [EXACT, {"kernels": "cycle", **SERVER}])
+# at B = 1 every reset restarts every field: TorchRL's other branch (the env's own code, alike on every
+# kernel: run on the fast compiled cycle only)
+@pytest.mark.parametrize(
+    ("options", "batch"),
+    [(EXACT, 6), ({"kernels": "cycle", **SERVER}, 6), ({"kernels": "cycle", **SERVER}, 1)],
+)
 @pytest.mark.parametrize("sync", SYNCS)
 def test_maybe_reset_gives_what_torchrl_s_blend_gives(sync: str, options: dict, batch: int) -> None:
     """KeepawayEnv.maybe_reset puts the reset's entries in place; TorchRL's (here through a TransformedEnv,
@@ -138,8 +142,8 @@ def _copy_generator(generator: torch.Generator) -> torch.Generator:
 
 def _first_episodes(sync: str, fields: int) -> tuple[list[list[tuple]], list[tuple[int, int]]]:
     """Each field's decisions (keeper, cycle, state variables) and (duration, cause) of its first
-    episode, Hand-coded keepers, no movement noise."""
-    env = KeepawayEnv(fields, seed=3, sync=sync, movement_noise=False, **EXACT)
+    episode, Hand-coded keepers, no movement noise (on the compiled cycle: the env's sync is under test)."""
+    env = KeepawayEnv(fields, seed=3, sync=sync, movement_noise=False, kernels="cycle", **EXACT)
     td = env.reset()
     decisions: list[list[tuple]] = [[] for _ in range(fields)]
     ends: list[tuple[int, int] | None] = [None] * fields
@@ -167,7 +171,7 @@ def test_any_mode_plays_the_same_episodes_as_all_mode() -> None:
 
 def _durations(sync: str, fields: int, per_field: int) -> torch.Tensor:
     """The first ``per_field`` episode durations (cycles) of every field, Random keepers."""
-    env = KeepawayEnv(fields, seed=4, sync=sync, **EXACT)
+    env = KeepawayEnv(fields, seed=4, sync=sync, kernels="cycle", **EXACT)
     choose = make_benchmark_policy("random", 3, 2, torch.Generator().manual_seed(4))
     td = env.reset()
     count = torch.zeros(fields, dtype=torch.long)
@@ -186,7 +190,7 @@ def test_any_mode_episode_durations_match_all_mode() -> None:
     """With movement noise the simulator's one generator is drawn in a different order, so the
     episodes differ: their durations must agree in distribution (means within 4 standard errors,
     and the spreads within 30 %)."""
-    a, b = _durations("all", 48, 2), _durations("any", 48, 2)
+    a, b = _durations("all", 48, 2), _durations("any", 48, 2)  # on the compiled cycle: the env's sync alone
     assert a.numel() == b.numel() == 96
     z = (a.mean() - b.mean()) / (a.var() / a.numel() + b.var() / b.numel()).sqrt()
     assert abs(float(z)) < 4.0, (float(a.mean()), float(b.mean()))
@@ -216,8 +220,8 @@ def test_same_seed_same_episode() -> None:
     "sync,steps,options",
     [
         ("all", 30, EXACT),
-        ("any", 400, EXACT),
-        ("any", 300, {**EXACT, "perception": "server"}),
+        ("any", 200, EXACT),
+        ("any", 150, {**EXACT, "perception": "server"}),
         ("all", 30, {"kernels": "cycle", **EXACT}),
         ("any", 300, {**EXACT, "perception": "server", "kernels": "cycle"}),
     ],
