@@ -568,8 +568,6 @@ def check_dqn(cfg: DictConfig, page: bool = False) -> None:
             "agent=cem (Tetris), agent=sarsa (keepaway) and agent=dqn on domain=gym; here agent=dqn takes a "
             "simulated trainer or a replay"
         )
-    if trainer != "none" and OmegaConf.select(cfg, "trainer.leave_after") is not None:
-        raise ConfigError("trainer.leave_after is not available with agent=dqn yet; allowed: null")
 
 
 def check_tetris_dqn(cfg: DictConfig) -> None:
@@ -793,8 +791,6 @@ def check_gym_ppo(cfg: DictConfig) -> None:
                 "(or fusion=none)"
             )
         return
-    if OmegaConf.select(cfg, "trainer.leave_after") is not None:
-        raise ConfigError("trainer.leave_after with agent=ppo is not available yet; allowed: null")
     check_gym_trainer(cfg, ("none", "oracle"))
 
 

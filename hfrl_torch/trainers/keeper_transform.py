@@ -21,6 +21,7 @@ from torchrl.envs.transforms import Transform
 from hfrl_torch import keys
 from hfrl_torch.common.resets import reset_flags
 from hfrl_torch.feedback.channel import FeedbackChannel
+from hfrl_torch.trainers.departure import Departure
 
 __all__ = ["KeeperFeedback"]
 
@@ -33,14 +34,19 @@ class KeeperFeedback(Transform):
     :param trainer: ``KeepawayOracle`` or ``KeepawayReplay`` (``give(obs, action, deciding, time, keeper)``,
         ``new_episodes(starting)``; a replay also ``poll(clock)``).
     :param slots: K, the events one field can receive per step (more wait for the next steps).
+    :param departure: when the trainer leaves the learner (the episodes its fields finished, or the minutes
+        of their clocks together; ``trainer.leave_after``): from then on it judges nothing, and what it gave
+        before still arrives. None: it stays.
     """
 
-    def __init__(self, trainer: Any, slots: int = 4) -> None:
+    def __init__(self, trainer: Any, slots: int = 4, departure: Departure | None = None) -> None:
         out = [keys.FEEDBACK, keys.FEEDBACK_TIME, keys.FEEDBACK_MASK, keys.FEEDBACK_SOURCE, keys.CLOCK]
         super().__init__(in_keys=[keys.ACTION, keys.OBSERVATION, keys.KEEPER, keys.DECIDING], out_keys=out)
         self.trainer, self.slots = trainer, int(slots)
         self.channel: FeedbackChannel | None = None
         self.clock: torch.Tensor | None = None  # [B] seconds
+        self.departure = departure or Departure()
+        self.episodes = 0  # finished by the fields together
 
     def _state(self, fields: int) -> FeedbackChannel:
         if self.channel is None:
@@ -51,7 +57,7 @@ class KeeperFeedback(Transform):
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         batch = tensordict.batch_size
         channel = self._state(batch.numel())
-        deciding = tensordict.get(keys.DECIDING).reshape(-1).cpu()
+        deciding = tensordict.get(keys.DECIDING).reshape(-1).cpu() & self.present
         values, times = self.trainer.give(
             tensordict.get(keys.OBSERVATION).reshape(batch.numel(), -1),
             tensordict.get(keys.ACTION).reshape(-1),
@@ -62,10 +68,18 @@ class KeeperFeedback(Transform):
         channel.put(values, times, self.trainer.source)
         cycles = next_tensordict.get(keys.STEP_CYCLES).reshape(-1).cpu().to(torch.float64)
         self.clock = self.clock + cycles / CYCLES_PER_SECOND
+        self.episodes += int(next_tensordict.get(keys.DONE).sum())
         channel.collect(self.trainer, self.clock)
         next_tensordict.update(channel.deliver(self.clock).reshape(batch))
         next_tensordict.set(keys.CLOCK, self.clock.clone().reshape(batch))
         return next_tensordict
+
+    @property
+    def present(self) -> bool:
+        """Whether the trainer still judges: the fields' finished episodes, or their clocks together, are
+        short of ``departure``'s."""
+        seconds = 0.0 if self.clock is None else float(self.clock.sum())
+        return bool(self.departure.present(torch.tensor(self.episodes), seconds))
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         batch = tensordict_reset.batch_size
@@ -94,15 +108,17 @@ class KeeperFeedback(Transform):
         return observation_spec
 
     def get_extra_state(self) -> dict[str, Any]:
-        """Each field's clock, the waiting events and the trainer's state."""
+        """Each field's clock, the episodes finished, the waiting events and the trainer's state."""
         return {
             "clock": None if self.clock is None else self.clock.clone(),
+            "episodes": self.episodes,
             "channel": None if self.channel is None else self.channel.state_dict(),
             "trainer": self.trainer.state_dict(),
         }
 
     def set_extra_state(self, state: dict[str, Any]) -> None:
         self.trainer.load_state_dict(state["trainer"])
+        self.episodes = int(state.get("episodes", 0))  # (checkpoints before trainer.leave_after: 0)
         if state["clock"] is not None:
             self._state(state["clock"].numel()).load_state_dict(state["channel"])
             self.clock = state["clock"].clone()

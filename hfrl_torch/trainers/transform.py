@@ -22,6 +22,7 @@ from torchrl.envs.transforms import Transform
 from hfrl_torch import keys
 from hfrl_torch.feedback.channel import FeedbackChannel
 from hfrl_torch.trainers.base import Trainer
+from hfrl_torch.trainers.departure import Departure
 
 __all__ = ["HumanFeedback"]
 
@@ -34,6 +35,9 @@ class HumanFeedback(Transform):
     :param slots: K, the events one board can receive per step (more wait for the next steps).
     :param score_key: the entry of ``next`` the trainer's ``end_games`` is told at an episode's end (Tetris's
         lines); on a task without it (any Gymnasium env) the trainer is told the end with a score of 0.
+    :param departure: when the trainer leaves the learner (its episodes over all boards, or its simulated
+        minutes; ``trainer.leave_after``): from then on it judges nothing, and what it gave before still
+        arrives. None: it stays.
     """
 
     def __init__(
@@ -42,13 +46,14 @@ class HumanFeedback(Transform):
         seconds_per_step: float = 1.0,
         slots: int = 4,
         score_key: NestedKey = keys.LINES,
+        departure: Departure | None = None,
     ) -> None:
         if not seconds_per_step > 0:
             raise ValueError(f"HumanFeedback seconds_per_step must be > 0, got {seconds_per_step!r}")
         out = [keys.FEEDBACK, keys.FEEDBACK_TIME, keys.FEEDBACK_MASK, keys.FEEDBACK_SOURCE, keys.CLOCK]
         super().__init__(in_keys=[keys.ACTION], out_keys=out)
         self.trainer, self.seconds_per_step, self.slots = trainer, float(seconds_per_step), int(slots)
-        self.score_key = score_key
+        self.score_key, self.departure = score_key, departure or Departure()
         self.channel: FeedbackChannel | None = None
         self.steps = 0
         self._games: torch.Tensor | None = None
@@ -64,12 +69,20 @@ class HumanFeedback(Transform):
         """The simulated time of the next step's action (seconds)."""
         return self.steps * self.seconds_per_step
 
+    @property
+    def present(self) -> bool:
+        """Whether the trainer still judges: the learner's episodes over all its boards, or its clock, are
+        short of ``departure``'s."""
+        games = 0 if self._games is None else int(self._games.sum())
+        return bool(self.departure.present(torch.tensor(games), self.clock))
+
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         batch = tensordict.batch_size
         channel = self._state(batch.numel())
-        flat = tensordict.reshape(-1)
-        events = self.trainer.give(flat, flat.get(keys.ACTION).reshape(-1), self.clock, self._games)
-        channel.put_events(events)
+        if self.present:
+            flat = tensordict.reshape(-1)
+            events = self.trainer.give(flat, flat.get(keys.ACTION).reshape(-1), self.clock, self._games)
+            channel.put_events(events)
         self.steps += 1
         next_tensordict.update(channel.deliver(self.clock).reshape(batch))
         next_tensordict.set(keys.CLOCK, torch.full(batch, self.clock, dtype=torch.float64))
@@ -121,4 +134,7 @@ class HumanFeedback(Transform):
 
     def __repr__(self) -> str:
         trainer = type(self.trainer).__name__
-        return f"{type(self).__name__}(trainer={trainer}, seconds_per_step={self.seconds_per_step})"
+        return (
+            f"{type(self).__name__}(trainer={trainer}, seconds_per_step={self.seconds_per_step}, "
+            f"departure={self.departure!r})"
+        )

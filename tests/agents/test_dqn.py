@@ -234,7 +234,7 @@ def test_evaluate_plays_dqn_checkpoints_of_both_domains(tmp_path, run_learner):
     [
         (["agent=dqn", "fusion=linear", "trainer=none"], "choose a trainer"),
         (["agent=dqn", "fusion=linear", "trainer=interactive"], "trainer=interactive with agent=dqn"),
-        (["agent=dqn", "fusion=linear", "trainer.leave_after=3"], "leave_after"),
+        (["agent=dqn", "fusion=linear", "trainer.leave_after=-3"], "trainer.leave_after=-3"),
         (["agent=dqn", "fusion=linear", "human=tile_coded"], "human.name='tile_coded' is invalid"),
         (["agent=dqn", "agent.cells=[0]"], "agent.cells"),
         (["agent=dqn", "fusion=linear", "human=mlp", "human.lr=0"], "human.lr"),

@@ -6,6 +6,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from hfrl_torch.feedback.log import load_feedback_log
 from hfrl_torch.trainers.departure import Departure
 
 
@@ -82,3 +83,61 @@ def test_ce_trainer_leaves_after_its_iterations(tmp_path, run_learner) -> None:
     given = [r["feedback/given"] for r in learner.history]
     assert given[0] > 0 and given[1:] == [0.0, 0.0]
     assert [r["feedback/trainer_minutes"] > 0 for r in learner.history] == [True, False, False]
+
+
+CARTPOLE = ("domain=gym", "domain.env_id=CartPole-v1", "trainer.reference=examples.cartpole:reference")
+GYM_PPO = (*CARTPOLE, "agent=ppo", "agent.boards=4", "agent.steps_per_batch=32", "agent.minibatch_size=128")
+GYM_DQN = (
+    *CARTPOLE,
+    "agent=dqn",
+    "agent.boards=4",
+    "agent.steps_per_batch=8",
+    "agent.learn_after=64",
+    "agent.epsilon_frames=400",
+    "agent.eval_episodes=2",
+    "agent.frames=480",
+    "agent.eval_every=160",
+)
+KEEPAWAY_DQN = (
+    "domain=keepaway",
+    "agent=dqn",
+    "trainer=oracle",
+    "human=mlp",
+    "human.cells=[16]",
+    "domain.decision_period_cycles=5",
+    "agent.boards=4",
+    "agent.frames=240",
+    "agent.eval_every=80",
+    "agent.eval_episodes=2",
+    "agent.learn_after=32",
+    "agent.batch_size=16",
+    "agent.cells=[16]",
+)
+
+
+@pytest.mark.parametrize(
+    ("task", "leave"),
+    [
+        ((*GYM_DQN, "fusion=linear"), ("trainer.leave_after=0.1", "trainer.leave_unit=minutes")),  # 30 steps
+        ((*GYM_PPO, "fusion=linear", "agent.frames=640", "agent.eval_every=128"), ("trainer.leave_after=6",)),
+        ((*KEEPAWAY_DQN, "fusion=reward_shaping", "fusion.weight=0.5"), ("trainer.leave_after=3",)),
+    ],
+    ids=["gym-dqn-minutes", "gym-ppo-episodes", "keepaway-dqn-episodes"],
+)
+def test_collector_learners_trainer_leaves_and_what_it_gave_before_is_the_same(
+    tmp_path, run_learner, one_thread, task, leave
+) -> None:
+    """DQN and PPO on the collector path: the trainer who leaves gives, up to the moment it leaves, the very
+    events of a trainer who stays (the same seed), and none after; the points say it is gone."""
+    _, stayed = run_learner(tmp_path / "stays", *task)
+    learner, left = run_learner(tmp_path / "leaves", *task, *leave)
+    events = [
+        (e.time, e.value, e.episode, e.step)
+        for e in load_feedback_log(tmp_path / "leaves" / "feedback.jsonl")
+    ]
+    every = [
+        (e.time, e.value, e.episode, e.step) for e in load_feedback_log(tmp_path / "stays" / "feedback.jsonl")
+    ]
+    assert 0 < len(events) < len(every) and events == every[: len(events)]
+    assert learner.history[-1]["trainer/present"] == 0.0 and learner.history[0]["trainer/present"] == 1.0
+    assert left["feedback_events"] == len(events) < stayed["feedback_events"]

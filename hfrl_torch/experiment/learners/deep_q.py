@@ -52,6 +52,7 @@ from hfrl_torch.feedback.log import FeedbackLog
 from hfrl_torch.fusion.fusion import Fusion
 from hfrl_torch.fusion.transform import FeedbackFusion, FusionModule
 from hfrl_torch.interactive.live import LiveTeaching
+from hfrl_torch.trainers.departure import Departure
 
 SAVE_EVERY_S = 10.0  # wall seconds between checkpoints
 
@@ -112,6 +113,7 @@ class CollectorLearner(FramesLearner):
             "feedback/positive_share": self.positive / self.events if self.events else 0.0,
             "fusion/weight_mean": weight,
             "fusion/played_weight_mean": sum(played) / len(played) if played else math.nan,
+            "trainer/present": float(self.feedback_transform.present),
         }
 
     def common_state(self) -> dict[str, Any]:
@@ -211,7 +213,7 @@ class DeepQLearner(CollectorLearner):
         if self.taught:  # the trainer's transform keeps its own channel: its boards are the env's
             wiring = self.make_wiring(run_dir)
             self.log, self.teaching = wiring.log, wiring.teaching
-            self.feedback_transform = self.make_feedback(wiring.trainer)
+            self.feedback_transform = self.make_feedback(wiring.trainer, wiring.departure)
         self.reward_fusion = FeedbackFusion(self.fusion, estimate_key=keys.HUMAN_REWARD_ESTIMATE)
         parts = [*self.domain_transforms(), *filter(None, [self.feedback_transform]), self.reward_fusion]
         self.env = TransformedEnv(
@@ -283,8 +285,9 @@ class DeepQLearner(CollectorLearner):
         return make_feedback_wiring(self.cfg, run_dir, self.fusion, self.make_trainer, fsync_simulated=False)
 
     @abstractmethod
-    def make_feedback(self, trainer: Any) -> Transform:
-        """``trainer`` as a transform (writes ``keys.FEEDBACK*`` and ``keys.CLOCK`` into ``next``)."""
+    def make_feedback(self, trainer: Any, departure: Departure) -> Transform:
+        """``trainer`` as a transform (writes ``keys.FEEDBACK*`` and ``keys.CLOCK`` into ``next``) that stops
+        judging at ``departure`` (``trainer.leave_after``)."""
 
     @abstractmethod
     def episode_performance(self, nxt: TensorDictBase) -> torch.Tensor:
@@ -338,7 +341,8 @@ class DeepQLearner(CollectorLearner):
         if self.teaching is not None:
             return "human:browser: a PERSON teaching in the browser (trainer=interactive), watching board 0"
         label = TRAINER_LABELS.get(self.cfg.trainer.name, self.cfg.trainer.name)
-        return f"{label} (a simulated or replayed trainer, not a person), one per board"
+        leaves = self.feedback_transform.departure.describe() if self.feedback_transform is not None else ""
+        return f"{label} (a simulated or replayed trainer, not a person), one per board; {leaves}"
 
     def start(self, logger: Logger) -> None:
         self.logger = logger

@@ -49,6 +49,7 @@ from hfrl_torch.interactive.gym_live import BrowserGymTrainer, GymWatcher
 from hfrl_torch.interactive.messages import MAX_SPEED, MIN_SPEED
 from hfrl_torch.models.mlp import ActionMLP
 from hfrl_torch.trainers import Trainer
+from hfrl_torch.trainers.departure import Departure
 from hfrl_torch.trainers.transform import HumanFeedback
 
 SCORE_KEY = "eval/greedy_return"  # the points of every domain=gym learner
@@ -186,8 +187,10 @@ class GymDQN(GymTaskParts, DeepQLearner):
     def make_trainer(self, log: FeedbackLog) -> Trainer:
         return make_gym_trainer(self.cfg, self.spaces.actions, log)
 
-    def make_feedback(self, trainer: Trainer) -> Transform:
-        return HumanFeedback(trainer, self.seconds_per_step, score_key=keys.EPISODE_REWARD)
+    def make_feedback(self, trainer: Trainer, departure: Departure) -> Transform:
+        return HumanFeedback(
+            trainer, self.seconds_per_step, score_key=keys.EPISODE_REWARD, departure=departure
+        )
 
     def watched_seconds(self, nxt: TensorDictBase) -> float:
         return (1 if self.teaching is not None else self.boards) * self.seconds_per_step

@@ -135,7 +135,9 @@ class GymPPO(GymTaskParts, CollectorLearner):
             )
             self.log = wiring.log
             seconds = float(cfg.domain.seconds_per_step)
-            self.feedback_transform = HumanFeedback(wiring.trainer, seconds, score_key=keys.EPISODE_REWARD)
+            self.feedback_transform = HumanFeedback(
+                wiring.trainer, seconds, score_key=keys.EPISODE_REWARD, departure=wiring.departure
+            )
             modules = [HumanValuesModule(self.human, [keys.OBSERVATION]), self.ppo.actor, ChosenEstimate()]
         self.policy = TensorDictSequential(*modules)
         self.reward_fusion = FeedbackFusion(self.fusion, estimate_key=keys.HUMAN_REWARD_ESTIMATE)
@@ -176,7 +178,8 @@ class GymPPO(GymTaskParts, CollectorLearner):
             logger.text(
                 "trainer",
                 f"{TRAINER_LABELS.get(self.cfg.trainer.name, self.cfg.trainer.name)} (a simulated trainer, "
-                f"not a person), one per board; fusion={self.cfg.fusion.name}, human={self.cfg.human.name}",
+                f"not a person), one per board, {self.feedback_transform.departure.describe()}; "
+                f"fusion={self.cfg.fusion.name}, human={self.cfg.human.name}",
             )
 
     def advance(self) -> list[Point]:

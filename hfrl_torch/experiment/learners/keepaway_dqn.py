@@ -39,6 +39,7 @@ from hfrl_torch.experiment.factories import (
 from hfrl_torch.experiment.learners.deep_q import DeepQLearner
 from hfrl_torch.feedback.log import FeedbackLog
 from hfrl_torch.models.mlp import ActionMLP, keeper_scale
+from hfrl_torch.trainers.departure import Departure
 from hfrl_torch.trainers.keepaway_oracle import KeepawayOracle
 from hfrl_torch.trainers.keepaway_replay import KeepawayReplay
 from hfrl_torch.trainers.keeper_transform import KeeperFeedback
@@ -96,8 +97,8 @@ class KeepawayDQN(DeepQLearner):
     def make_trainer(self, log: FeedbackLog) -> KeepawayOracle | KeepawayReplay:
         return make_keeper_trainer(self.cfg, self.config, self.boards, log)
 
-    def make_feedback(self, trainer: KeepawayOracle | KeepawayReplay) -> Transform:
-        return KeeperFeedback(trainer)
+    def make_feedback(self, trainer: KeepawayOracle | KeepawayReplay, departure: Departure) -> Transform:
+        return KeeperFeedback(trainer, departure=departure)
 
     def watched_seconds(self, nxt: TensorDictBase) -> float:
         return float(nxt[keys.STEP_CYCLES].sum()) / CYCLES_PER_SECOND

@@ -36,6 +36,7 @@ from hfrl_torch.experiment.learners.deep_q import DeepQLearner
 from hfrl_torch.feedback.log import FeedbackLog
 from hfrl_torch.models.mlp import AfterstateMLP
 from hfrl_torch.trainers import Trainer
+from hfrl_torch.trainers.departure import Departure
 from hfrl_torch.trainers.transform import HumanFeedback
 
 
@@ -97,8 +98,8 @@ class TetrisDQN(DeepQLearner):
     def make_trainer(self, log: FeedbackLog) -> Trainer:
         return make_trainer(self.cfg, log)
 
-    def make_feedback(self, trainer: Trainer) -> Transform:
-        return HumanFeedback(trainer, float(self.cfg.human.seconds_per_placement))
+    def make_feedback(self, trainer: Trainer, departure: Departure) -> Transform:
+        return HumanFeedback(trainer, float(self.cfg.human.seconds_per_placement), departure=departure)
 
     def watched_seconds(self, nxt: TensorDictBase) -> float:
         return self.boards * float(self.cfg.human.seconds_per_placement)
