@@ -78,8 +78,12 @@ class KeeperFeedback(Transform):
     def present(self) -> bool:
         """Whether the trainer still judges: the fields' finished episodes, or their clocks together, are
         short of ``departure``'s."""
-        seconds = 0.0 if self.clock is None else float(self.clock.sum())
-        return bool(self.departure.present(torch.tensor(self.episodes), seconds))
+        return self.present_at(self.episodes, torch.zeros(1) if self.clock is None else self.clock)
+
+    def present_at(self, episodes: int, clock: torch.Tensor) -> bool:
+        """Whether the trainer judged a step taken after ``episodes`` ended episodes at the fields' ``clock``
+        (the step's ``keys.CLOCK``): what a learner books as the trainer's time."""
+        return bool(self.departure.present(torch.tensor(episodes), float(clock.sum())))
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         batch = tensordict_reset.batch_size

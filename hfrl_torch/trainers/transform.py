@@ -74,7 +74,12 @@ class HumanFeedback(Transform):
         """Whether the trainer still judges: the learner's episodes over all its boards, or its clock, are
         short of ``departure``'s."""
         games = 0 if self._games is None else int(self._games.sum())
-        return bool(self.departure.present(torch.tensor(games), self.clock))
+        return self.present_at(games, torch.tensor(self.clock))
+
+    def present_at(self, episodes: int, clock: torch.Tensor) -> bool:
+        """Whether the trainer judged a step taken after ``episodes`` ended episodes at ``clock`` (the step's
+        ``keys.CLOCK``): what a learner books as the trainer's time."""
+        return bool(self.departure.present(torch.tensor(episodes), float(clock.reshape(-1)[0])))
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         batch = tensordict.batch_size

@@ -141,3 +141,4 @@ def test_collector_learners_trainer_leaves_and_what_it_gave_before_is_the_same(
     assert 0 < len(events) < len(every) and events == every[: len(events)]
     assert learner.history[-1]["trainer/present"] == 0.0 and learner.history[0]["trainer/present"] == 1.0
     assert left["feedback_events"] == len(events) < stayed["feedback_events"]
+    assert 0 < left["trainer_minutes"] < stayed["trainer_minutes"]  # its time is booked while it watched

@@ -376,7 +376,8 @@ class DeepQLearner(CollectorLearner):
                 self.events += int(count.sum())
                 given = nxt[keys.FEEDBACK_MASK]
                 self.positive += int((given & (nxt[keys.FEEDBACK] > 0)).sum())
-                self.trainer_seconds += self.watched_seconds(nxt)
+                if self.feedback_transform.present_at(self.episodes, step[keys.CLOCK]):
+                    self.trainer_seconds += self.watched_seconds(nxt)
             done = nxt[keys.DONE].reshape(-1)
             if bool(done.any()):
                 perf = self.episode_performance(nxt)[done]

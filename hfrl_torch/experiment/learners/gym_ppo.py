@@ -199,7 +199,8 @@ class GymPPO(GymTaskParts, CollectorLearner):
                 self.human.record(step, step[keys.ACTION], step[keys.CLOCK])
                 self.events += int(self.human.learn(nxt).sum())
                 self.positive += int((nxt[keys.FEEDBACK_MASK] & (nxt[keys.FEEDBACK] > 0)).sum())
-                self.trainer_seconds += self.boards * float(self.cfg.domain.seconds_per_step)
+                if self.feedback_transform.present_at(self.episodes, step[keys.CLOCK]):
+                    self.trainer_seconds += self.boards * float(self.cfg.domain.seconds_per_step)
             done = nxt[keys.DONE].reshape(-1)
             for ret in nxt[keys.EPISODE_REWARD].reshape(-1)[done].tolist():
                 if self.taught:
