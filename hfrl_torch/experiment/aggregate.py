@@ -678,7 +678,9 @@ def baseline_index(base: str, labels: list[str]) -> int:
     hits = [i for i, v in enumerate(values) if v == base]
     if len(hits) == 1:
         return hits[0]
-    allowed = "; ".join(f"{v} ({label})" for v, label in zip(values, labels, strict=True))
+    # a value with a comma is typed quoted (baseline='human_only, None'): Hydra reads it bare as a list
+    typed = [repr(v) if "," in v else v for v in values]
+    allowed = "; ".join(f"{v} ({label})" for v, label in zip(typed, labels, strict=True))
     raise ConfigError(f"baseline={base!r} is not one condition here; allowed: {allowed}")
 
 

@@ -11,8 +11,10 @@ import pytest
 from omegaconf import OmegaConf
 from script_runner import run_script
 
+from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.experiment.aggregate import (
     aggregate,
+    baseline_index,
     departures,
     effect_size,
     find_runs,
@@ -269,3 +271,13 @@ def test_the_curves_mark_where_the_trainer_left_in_episodes_only(tmp_path):
         for f in ("config.yaml", "metrics.jsonl"):
             (left / name / f).write_text((tmp_path / name / f).read_text())
     assert departures(group_runs(find_runs([left])[0])) == [5.0]
+
+
+def test_an_unknown_baseline_names_several_valued_conditions_as_they_are_typed():
+    labels = ["fusion.name=none, trainer.leave_after=None", "fusion.name=linear, trainer.leave_after=20"]
+    with pytest.raises(ConfigError) as caught:
+        baseline_index("nothing", labels)
+    assert "allowed: 'none, None' (fusion.name=none, trainer.leave_after=None); 'linear, 20'" in str(
+        caught.value
+    )
+    assert baseline_index("linear, 20", labels) == 1  # as typed, the quotes removed by Hydra
