@@ -241,7 +241,7 @@ class KeepawayWatcher:
         self._decided: tuple[int, int] | None = None  # (episode, decision) of the last decision shown
         self._alone: int | None = None  # the coming decision's move by Q alone, where the teaching changed it
         self.without_you: str | None = (
-            None  # the last decision's move by Q alone, where the teaching changed it
+            None  # "keeper 2 would have held the ball", where the teaching changed it
         )
         self.steered = [0, 0]  # decisions of the field's episode the teaching changed, and all of them
         self.session.set_live(False)  # nothing to judge before the first frame

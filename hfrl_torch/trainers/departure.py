@@ -47,6 +47,12 @@ class Departure:
         s = torch.as_tensor(seconds, dtype=torch.float64).expand(e.shape)
         return s / 60.0 < self.after
 
+    def present_one(self, episodes: int, seconds: float) -> bool:
+        """:meth:`present` of one learner, given its finished episodes and its simulated clock (seconds)."""
+        if self.after is None:
+            return True
+        return (episodes if self.unit == "episodes" else seconds / 60.0) < self.after
+
     def describe(self) -> str:
         return "stays" if self.after is None else f"leaves after {self.after:g} {self.unit}"
 

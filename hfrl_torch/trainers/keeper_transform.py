@@ -83,7 +83,7 @@ class KeeperFeedback(Transform):
     def present_at(self, episodes: int, clock: torch.Tensor) -> bool:
         """Whether the trainer judged a step taken after ``episodes`` ended episodes at the fields' ``clock``
         (the step's ``keys.CLOCK``): what a learner books as the trainer's time."""
-        return bool(self.departure.present(torch.tensor(episodes), float(clock.sum())))
+        return self.departure.present_one(episodes, float(clock.sum()))
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         batch = tensordict_reset.batch_size

@@ -79,7 +79,7 @@ class HumanFeedback(Transform):
     def present_at(self, episodes: int, clock: torch.Tensor) -> bool:
         """Whether the trainer judged a step taken after ``episodes`` ended episodes at ``clock`` (the step's
         ``keys.CLOCK``): what a learner books as the trainer's time."""
-        return bool(self.departure.present(torch.tensor(episodes), float(clock.reshape(-1)[0])))
+        return self.departure.present_one(episodes, float(clock.reshape(-1)[0]))
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         batch = tensordict.batch_size

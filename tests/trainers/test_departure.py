@@ -17,6 +17,9 @@ def test_present_by_episodes_and_by_minutes() -> None:
     assert Departure(1, "minutes").present(episodes, seconds).tolist() == [True, True, False, False]
     assert Departure().present(episodes, seconds).all()
     assert Departure(0).present(episodes, seconds).sum() == 0  # a trainer who never came
+    for d in (Departure(5), Departure(1, "minutes"), Departure(), Departure(0)):  # one learner: the same
+        one = [d.present_one(int(e), float(t)) for e, t in zip(episodes, seconds, strict=True)]
+        assert one == d.present(episodes, seconds).tolist(), d
 
 
 def test_bad_departures_are_refused() -> None:

@@ -140,7 +140,7 @@ class GymTamer(GymTaskParts, FramesLearner):
     def present(self) -> bool:
         """Whether the trainer still watches (``trainer.leave_after``): the learner's episodes over all its
         boards, or its simulated minutes."""
-        return bool(self.departure.present(torch.tensor(self.episodes), self.clock))
+        return self.departure.present_one(self.episodes, self.clock)
 
     def start(self, logger: Logger) -> None:
         if self.restarts and self.resumed:

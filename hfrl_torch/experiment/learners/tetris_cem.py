@@ -184,7 +184,7 @@ class CEMLearner(Learner):
             weight = float(self.fusion.weight()[0])  # 0 for none and human_only
             self.fusion.generator.manual_seed(component_seed(self.cfg.seed, "cem_fusion", t))
             watched = dict.fromkeys(("env_return", "fused_return", "placements", "given", "positive"), 0.0)
-            present = bool(self.departure.present(torch.tensor(t), self.clock))
+            present = self.departure.present_one(t, self.clock)
             if present:  # the trainer's game
                 watched = self.watch_game(component_seed(self.cfg.seed, "watched_game", t), t)
             if not present and self.cfg.agent.get("alone_after_departure", False):
