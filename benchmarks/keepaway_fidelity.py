@@ -4,8 +4,9 @@ curve under one choice of the simulator's and the learner's details. Prints one 
     python benchmarks/keepaway_fidelity.py policies --preset rcss19 [domain options]
     python benchmarks/keepaway_fidelity.py learn --preset rcss19 [domain and learner options]
 
-Domain options are ``KeepawayConfig`` fields (``--perception server --hold-ball reference
---decision-timing server --movement-noise false``). ``policies`` plays Always Hold, Random and
+Domain options are ``KeepawayConfig`` fields (``--perception exact --hold-ball spec
+--decision-timing cycle --movement-noise false``); left out, each is the default task's, the one
+``train.py domain=keepaway`` plays. ``policies`` plays Always Hold, Random and
 Hand-coded (1000 episodes each by default; ``--cap-s`` cuts episodes at that length, for the settings
 where they may never end, exact perception with the reference HoldBall rule, and reports the share
 cut). ``learn``
@@ -26,7 +27,6 @@ from pathlib import Path
 
 import torch
 
-from hfrl_torch.agents.sarsa.sarsa_numba import SarsaLambdaNumba
 from hfrl_torch.envs.keepaway import KeepawayConfig
 from hfrl_torch.envs.keepaway.benchmark_policies import play_benchmark_policy
 from hfrl_torch.envs.keepaway.records import CYCLES_PER_HOUR, CYCLES_PER_SECOND
@@ -87,8 +87,6 @@ def learn(args: argparse.Namespace) -> dict:
             for name in ("preset", "perception", "hold_ball", "decision_timing", "movement_noise")
         ),
         f"domain.noisy_observations={str(config.noisy_observations).lower()}",
-        # first ties are SarsaLambda.ties, which the compiled learner's decisions do not read
-        *(["agent.kernels=torch"] if args.ties == "first" else []),
     ]
     cfg = compose_train(*overrides)
     with tempfile.TemporaryDirectory() as run_dir:
@@ -96,10 +94,7 @@ def learn(args: argparse.Namespace) -> dict:
         agent = learner.agent_sarsa
         if args.initial_q:
             agent.coder.weight.fill_(args.initial_q / agent.coder.active_tiles)
-        if args.ties == "first":
-            if isinstance(agent, SarsaLambdaNumba):
-                raise ValueError("--ties first: the compiled learner never reads SarsaLambda.ties")
-            agent.ties = "first"
+        agent.ties = args.ties
         start = time.perf_counter()
         run_learner(learner, RunFiles(Path(run_dir), cfg), [], Interrupt())
         wall = time.perf_counter() - start
@@ -120,12 +115,14 @@ def learn(args: argparse.Namespace) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("mode", choices=("policies", "learn"))
-    parser.add_argument("--preset", default="rcss19")
-    parser.add_argument("--perception", default="exact")
-    parser.add_argument("--hold-ball", default="spec")
-    parser.add_argument("--decision-timing", default="cycle")
-    parser.add_argument("--movement-noise", default="true", choices=("true", "false"))
-    parser.add_argument("--noisy-observations", default="false", choices=("true", "false"))
+    task = KeepawayConfig()  # the defaults are train.py domain=keepaway's task, as the library's are
+    parser.add_argument("--preset", default=task.preset)
+    parser.add_argument("--perception", default=task.perception)
+    parser.add_argument("--hold-ball", default=task.hold_ball)
+    parser.add_argument("--decision-timing", default=task.decision_timing)
+    for flag in ("movement_noise", "noisy_observations"):
+        default = str(getattr(task, flag)).lower()
+        parser.add_argument(f"--{flag.replace('_', '-')}", default=default, choices=("true", "false"))
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--episodes", type=int, default=1000)
     parser.add_argument("--batch", type=int, default=500)

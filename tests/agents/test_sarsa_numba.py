@@ -95,10 +95,14 @@ def _assert_same_state(torch_agent: SarsaLambda, compiled: SarsaLambda, same_lay
         assert torch.equal(torch_agent.trace_value, compiled.trace_value)
 
 
-@pytest.mark.parametrize("lambda_", [0.0, 0.9])
-@pytest.mark.parametrize("fused", [False, True])
-def test_scripted_episodes_give_the_same_actions_and_weights(lambda_, fused):
+@pytest.mark.parametrize(
+    ("lambda_", "fused", "ties"),
+    [(0.0, False, "random"), (0.0, True, "random"), (0.9, False, "random"), (0.9, True, "random"),
+     (0.9, False, "first")],
+)  # fmt: skip
+def test_scripted_episodes_give_the_same_actions_and_weights(lambda_, fused, ties):
     reference, compiled = _pair(lambda_)
+    reference.ties = compiled.ties = ties
     gen = torch.Generator().manual_seed(7)
     for step in range(60):
         m = int(torch.randint(1, 7, (1,), generator=gen))

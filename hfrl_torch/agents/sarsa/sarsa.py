@@ -68,7 +68,7 @@ class SarsaLambda:
 
     kernels = "torch"  # the reference path, any device (``SarsaLambdaNumba``: the compiled twin)
     # greedy ties: "random" (the reference's) or "first" (the lowest action, HoldBall, for comparisons with
-    # players that break ties so); :meth:`select` draws the same numbers either way. The torch path only.
+    # players that break ties so); :meth:`select` draws the same numbers either way, as the compiled twin.
     ties = "random"
 
     def __init__(

@@ -467,6 +467,8 @@ class SarsaLambdaNumba(SarsaLambda):
         weight, widths, tables, last_action, q_last, trace_index, trace_value = self._views()
         m, a = mask.shape
         tie = torch.rand(m, a, generator=self.generator).numpy()
+        if self.ties == "first":  # equal scores: the first tied action wins, as on the torch path
+            tie = np.zeros_like(tie)
         noise = torch.rand(m, a, generator=self.generator).numpy()
         draw = torch.rand(m, generator=self.generator).numpy()
         action = np.empty(m, dtype=np.int64)
