@@ -17,7 +17,8 @@ acting on its own world model; ``exact`` the true state.
 ``--env-steps-only`` times just ``KeepawayEnv.step_and_maybe_reset`` (what the Sarsa loop calls) with
 pre-drawn random actions, so the policy costs nothing: env steps (one per field) per second for each
 ``--env-syncs`` mode and ``--env-batches`` size, on the whole-cycle path and, side by side, the default
-CPU path (fewer steps: it is slower by orders of magnitude).
+CPU path (fewer steps: it is slower by orders of magnitude) and the whole-cycle kernel one cycle per
+call (``cycle_by_cycle``: the browser trainer's run, whose page is drawn after every cycle).
 
     python benchmarks/keepaway_throughput.py --env-steps-only [--env-batches 1 10 1024]
         [--env-syncs all any] [--env-seconds 3]
@@ -117,11 +118,19 @@ def env_rate(
 
 
 def env_step_rate(
-    batch: int, sync: str, kernels: str, seconds: float, preset: str, perception: str
+    batch: int, sync: str, kernels: str, seconds: float, preset: str, perception: str, by_cycle: bool = False
 ) -> dict[str, float]:
     """Env steps (``step_and_maybe_reset`` calls times B) and calls per second, random actions drawn
     beforehand, run for about ``seconds`` after a warm-up; with the steps that hit an episode end."""
-    env = KeepawayEnv(batch, device="cpu", seed=0, sync=sync, kernels=kernels, **task(preset, perception))
+    env = KeepawayEnv(
+        batch,
+        device="cpu",
+        seed=0,
+        sync=sync,
+        kernels=kernels,
+        cycle_by_cycle=by_cycle,
+        **task(preset, perception),
+    )
     gen = torch.Generator().manual_seed(0)
     actions = torch.randint(0, env.config.num_actions, (64, batch), generator=gen)
     td = env.reset()
@@ -148,13 +157,16 @@ def env_step_rate(
 
 
 def env_steps_only(args: argparse.Namespace) -> None:
-    """``--env-steps-only``: the env's own step rate per sync mode and batch size, cycle vs default path."""
+    """``--env-steps-only``: the env's own step rate per sync mode and batch size, cycle vs default path,
+    and (small B) the whole-cycle kernel stepped one cycle per call, as the browser trainer's run does."""
     result: dict[str, object] = {"preset": args.preset, "perception": args.perception, "env": {}}
     for sync in args.env_syncs:
         for b in args.env_batches:
-            row = {"cycle": env_step_rate(b, sync, "cycle", args.env_seconds, args.preset, args.perception)}
+            common = (args.env_seconds, args.preset, args.perception)
+            row = {"cycle": env_step_rate(b, sync, "cycle", *common)}
             if b <= args.reference_max_batch:
-                row["auto"] = env_step_rate(b, sync, "auto", args.env_seconds, args.preset, args.perception)
+                row["cycle_by_cycle"] = env_step_rate(b, sync, "cycle", *common, by_cycle=True)
+                row["auto"] = env_step_rate(b, sync, "auto", *common)
             result["env"][f"sync={sync} B={b}"] = row
     print(json.dumps(result, indent=2))
 

@@ -407,18 +407,13 @@ def check_keepaway_evaluation(cfg: DictConfig) -> None:
 
 
 def check_kernels(cfg: DictConfig) -> str:
-    """``domain.kernels``, checked against ``device`` and the browser trainer's cycle-by-cycle view."""
+    """``domain.kernels``, checked against ``device``."""
     kernels = require_choice(cfg, "domain.kernels", KERNELS)
     device = str(OmegaConf.select(cfg, "device", default="cpu"))
     if kernels in ("numba", "cycle") and device != "cpu":
         raise ConfigError(
             f"domain.kernels={kernels!r} runs on the CPU only, not device={device}; "
             "use domain.kernels=auto or torch"
-        )
-    if kernels == "cycle" and OmegaConf.select(cfg, "trainer.name") == "interactive":
-        raise ConfigError(
-            "domain.kernels='cycle' runs many cycles per call, and the browser trainer is shown every "
-            "cycle; use domain.kernels=numba (the default with trainer=interactive)"
         )
     return kernels
 

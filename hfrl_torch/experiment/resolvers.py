@@ -8,8 +8,8 @@ package). ``python train.py --cfg job`` shows them as written; ``--resolve`` sho
 - ``${decision_period:<trainer>}``: keepaway holders decide every cycle (100 ms, the reference) without
   a trainer and every 5 cycles (500 ms, the thesis's human-feedback setting) when one watches.
 - ``${keepaway_kernels:<device>,<trainer>}``: how keepaway's cycles run: ``cycle`` (whole cycles and the
-  SMDP advance compiled) on the CPU, ``numba`` (per-skill kernels, one cycle per call) when a person watches
-  in the browser (the live view is drawn after every cycle), ``torch`` on a GPU.
+  SMDP advance compiled) on the CPU, also when a person watches in the browser (the env then runs one
+  compiled cycle per call, and the live view is drawn after each), ``torch`` on a GPU.
 - ``${adaptive_prior_count:<domain>}``: the strength, in episodes, of the adaptive weight's prior for H^:
   4 for Tetris, 20 for keepaway, whose episodes are a few seconds each and so carry less evidence
   (measured: docs/results.md, the adaptive weight).
@@ -40,10 +40,9 @@ def decision_period(trainer: str) -> int:
 
 
 def keepaway_kernels(device: str, trainer: str | None) -> str:
-    """``cycle`` on the CPU, ``numba`` for the browser trainer's cycle-by-cycle view, ``torch`` elsewhere."""
-    if str(device) != "cpu":
-        return "torch"
-    return "numba" if trainer == "interactive" else "cycle"
+    """``cycle`` on the CPU (the browser trainer's view steps it one cycle per call), ``torch`` elsewhere.
+    ``trainer`` is kept in the interpolation so that saved configs that name it still resolve."""
+    return "cycle" if str(device) == "cpu" else "torch"
 
 
 def adaptive_prior_count(domain: str) -> float:

@@ -311,15 +311,14 @@ def test_numba_kernels_need_the_cpu():
     assert check_kernels(compose_config("train", "domain=keepaway", "agent=sarsa", "device=cuda")) == "torch"
 
 
-def test_keepaway_kernels_follow_the_device_and_the_trainer():
-    """Whole cycles compiled on the CPU, per-cycle kernels for the browser's live view, torch on a GPU;
-    whole cycles cannot show the browser trainer every cycle."""
+def test_keepaway_kernels_follow_the_device():
+    """Whole cycles compiled on the CPU, the browser's live view included (it steps them one cycle per
+    call), torch on a GPU."""
     assert check_kernels(compose_config("train", "domain=keepaway")) == "cycle"
-    assert check_kernels(compose_config("train", "domain=keepaway", "trainer=interactive")) == "numba"
+    assert check_kernels(compose_config("train", "domain=keepaway", "trainer=interactive")) == "cycle"
     assert check_kernels(compose_config("evaluate", "domain=keepaway")) == "cycle"
-    cfg = compose_config("train", "domain=keepaway", "trainer=interactive", "domain.kernels=cycle")
-    with pytest.raises(ConfigError, match=r"domain\.kernels='cycle' runs many cycles per call"):
-        check_kernels(cfg)
+    on_gpu = compose_config("train", "domain=keepaway", "trainer=interactive", "device=cuda")
+    assert check_kernels(on_gpu) == "torch"
 
 
 def test_the_adaptive_priors_strength_follows_the_domain(compose_train):

@@ -63,6 +63,10 @@ class KeepawayEnv(EnvBase):
         decide or ends, and a restarted field is "not deciding" until its keeper first must decide.
         ``"deciding"`` [B] marks the fields whose observation, keeper and action mask are a decision
         now (every alive field in ``"all"`` mode); actions of the other fields are ignored.
+    :param cycle_by_cycle: on the whole-cycle kernels (``kernels="cycle"``), step through the
+        simulator's ``step``, one compiled cycle per call, instead of running a step's cycles in one
+        compiled call: a hook on ``sim.step`` then sees every cycle (the browser trainer's view). The
+        other kernels always do.
     """
 
     batch_locked = True
@@ -76,6 +80,7 @@ class KeepawayEnv(EnvBase):
         seed: int = 0,
         max_cycles_per_step: int = 100_000,
         sync: str = "all",
+        cycle_by_cycle: bool = False,
         **config_overrides: object,
     ) -> None:
         if sync not in SYNC_MODES:
@@ -88,6 +93,7 @@ class KeepawayEnv(EnvBase):
         self.max_cycles_per_step = max_cycles_per_step
         self.sync = sync
         self.sim = KeepawaySimulator(batch_size, config, device=self.device, seed=seed)
+        self.whole_steps = self.sim.compiled is not None and not cycle_by_cycle  # a step in one call
         self._make_specs()
         self._outputs = self._blank_outputs()
         self._done = torch.ones(batch_size, dtype=torch.bool, device=self.device)
@@ -95,7 +101,7 @@ class KeepawayEnv(EnvBase):
         # (the tensors are only ever updated in place on that path, so the views stay valid)
         self._arrays = (
             (tuple(self._outputs[k].numpy() for k in _OUTPUT_KEYS), self._done.numpy())
-            if self.sim.compiled is not None
+            if self.whole_steps
             else None
         )
 
@@ -246,7 +252,7 @@ class KeepawayEnv(EnvBase):
             mask = tensordict.get(keys.RESET).reshape(-1).to(self.device)
         else:
             mask = torch.ones(self.batch_size, dtype=torch.bool, device=self.device)
-        if self.sim.compiled is not None:
+        if self.whole_steps:
             return self._compiled_reset(mask)
         self.sim.reset(mask)
         if self.sync == "all":  # "any": the restarted fields reach their first decision in later steps
@@ -282,7 +288,7 @@ class KeepawayEnv(EnvBase):
         actions = tensordict.get(keys.ACTION).reshape(-1).to(self.device).long()
         # the simulator reads an action only where the keeper must decide: in both modes exactly the
         # fields flagged "deciding" by the previous step or reset, so other fields' actions are ignored
-        if sim.compiled is not None:
+        if self.whole_steps:
             return self._compiled_step(actions)
         alive = ~self._done
         first = sim.step(actions, active=alive)

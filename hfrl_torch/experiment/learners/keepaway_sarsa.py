@@ -152,7 +152,12 @@ class SarsaKeepers(Learner):
             else "any"
         )
         env = KeepawayEnv(
-            fields, config, device=device, seed=component_seed(cfg.seed, "env", self.resumes), sync=sync
+            fields,
+            config,
+            device=device,
+            seed=component_seed(cfg.seed, "env", self.resumes),
+            sync=sync,
+            cycle_by_cycle=self.teaching is not None,  # the page is shown every cycle
         )
         self.sim, self.sim_env = env.sim, env
         self.reward_fusion = self._reward_fusion() if self.taught else None

@@ -45,13 +45,17 @@ EXACT = TASKS["exact"]  # the exact-state task, which these tests were written o
         {"keepers": 4, "takers": 3, "decision_period_cycles": 5, **SERVER},
         {"kernels": "cycle", **SERVER},
         {"kernels": "cycle", "keepers": 4, "takers": 3, "decision_period_cycles": 5, **EXACT},
+        {"kernels": "cycle", "cycle_by_cycle": True, "decision_period_cycles": 5, **SERVER},
     ],
 )
 def test_check_env_specs(options: dict, sync: str) -> None:
     check_env_specs(KeepawayEnv(3, seed=1, sync=sync, **options))
 
 
-@pytest.mark.parametrize("options", [EXACT, SERVER, {"kernels": "cycle", **SERVER}])
+@pytest.mark.parametrize(
+    "options",
+    [EXACT, SERVER, {"kernels": "cycle", **SERVER}, {"kernels": "cycle", "cycle_by_cycle": True, **SERVER}],
+)
 @pytest.mark.parametrize("sync", SYNCS)
 def test_partial_reset_changes_only_flagged_fields(sync: str, options: dict) -> None:
     env = KeepawayEnv(4, seed=2, sync=sync, **options)
@@ -224,6 +228,7 @@ def test_same_seed_same_episode() -> None:
         ("any", 150, {**EXACT, "perception": "server"}),
         ("all", 30, {"kernels": "cycle", **EXACT}),
         ("any", 300, {**EXACT, "perception": "server", "kernels": "cycle"}),
+        ("any", 150, {**EXACT, "perception": "server", "kernels": "cycle", "cycle_by_cycle": True}),
     ],
 )
 def test_rewards_count_cycles_per_keeper(sync: str, steps: int, options: dict) -> None:
@@ -280,6 +285,36 @@ def test_rewards_count_cycles_per_keeper(sync: str, steps: int, options: dict) -
         td = out
     assert checked > 20 and ended >= (1 if sync == "all" else 4)
     assert (idle > 0) == (sync == "any")
+
+
+@pytest.mark.parametrize("sync", SYNCS)
+def test_cycle_by_cycle_shows_a_hook_on_the_simulators_step_every_cycle(sync: str) -> None:
+    """The browser trainer's view on the whole-cycle kernels: each simulated cycle is one call of
+    ``sim.step`` (one compiled cycle), so a hook there sees every cycle the steps and resets count."""
+    env = KeepawayEnv(2, seed=5, sync=sync, kernels="cycle", cycle_by_cycle=True, decision_period_cycles=5)
+    assert env.sim.compiled is not None and not env.whole_steps
+    calls, step = [0], env.sim.step
+
+    def counted(*args, **kwargs):
+        calls[0] += 1
+        return step(*args, **kwargs)
+
+    env.sim.step = counted
+    td = env.reset()
+    at_reset = calls[0]
+    assert (at_reset > 0) == (sync == "all")  # "all" runs each field to its first decision in reset
+    gen, cycles, ended = torch.Generator().manual_seed(0), 0, 0
+    for _ in range(60):
+        td[keys.ACTION] = torch.randint(0, 3, (2,), generator=gen)
+        before = calls[0]
+        out, td = env.step_and_maybe_reset(td)
+        stepped = int(out["next", keys.STEP_CYCLES].max())  # the fields run in lock-step within a step
+        ended += int(out["next", keys.DONE].sum())
+        assert stepped >= 1
+        # "any" resets run no cycle; "all" ones run a restarted field to its first decision
+        assert calls[0] - before == stepped if sync == "any" else calls[0] - before >= stepped
+        cycles += stepped
+    assert cycles >= 60 and ended >= 1
 
 
 def test_decision_period_makes_holds_last_five_cycles() -> None:
