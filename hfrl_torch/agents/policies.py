@@ -56,6 +56,7 @@ from hfrl_torch.envs.tetris.features import feature_id, feature_size
 from hfrl_torch.fusion.fusion import Fusion
 from hfrl_torch.fusion.schedules import ConstantWeight
 from hfrl_torch.fusion.transform import FusionModule
+from hfrl_torch.models.cnn import ActionCNN, image_shape
 from hfrl_torch.models.linear import greedy_placement
 from hfrl_torch.models.mlp import ActionMLP, AfterstateMLP, keeper_scale
 from hfrl_torch.models.tile_coding import TileCoding, keepaway_tile_widths
@@ -348,16 +349,24 @@ def _gym_policy(
     """A network of one value per action on the observation (``key`` in the policy), played greedily
     (fused with the saved H^ where the run had a trainer), and the ``task`` it learned."""
     p = checkpoint["policy"]
-    size, actions, scale = int(p["observation_size"]), int(p["actions"]), p["scale"]
-    net = _load_state(ActionMLP(size, actions, p["cells"], scale), p[key], what)
+    net = _load_state(_gym_net(p, p["cells"]), p[key], what)
     human = None
     h = p.get("human")
     if p.get("fusion") is not None and h is not None:
-        model = _load_state(ActionMLP(size, actions, h["cells"], scale), h["model"], "H^ network")
+        model = _load_state(_gym_net(p, h["cells"]), h["model"], "H^ network")
         human = _Values(lambda td: model(td.get(keys.OBSERVATION)))
     module, fusion = _dqn_policy(net, keys.OBSERVATION, None, [], p, human, [keys.OBSERVATION])
     info = {"fusion": fusion, "describe": describe, **_gym_task(p)}
     return module.to(device), info
+
+
+def _gym_net(p: dict[str, Any], cells: list[int]) -> ActionMLP | ActionCNN:
+    """The network shape a gym policy saved: DQN's CNN on a frame (``observation_shape`` [H, W, C]), else
+    an MLP on the observation vector (policies saved before frames were allowed name no shape)."""
+    frame = image_shape(p.get("observation_shape") or ())
+    if frame is not None:
+        return ActionCNN(frame, int(p["actions"]), cells)
+    return ActionMLP(int(p["observation_size"]), int(p["actions"]), cells, p["scale"])
 
 
 def _gym_task(p: dict[str, Any]) -> dict[str, Any]:
@@ -373,8 +382,7 @@ def _gym_task(p: dict[str, Any]) -> dict[str, Any]:
 @register_policy_loader("gym_tamer")
 def _load_gym_tamer(checkpoint: dict[str, Any], device: torch.device, generator: torch.Generator) -> Loaded:
     p = checkpoint["policy"]
-    size, actions = int(p["observation_size"]), int(p["actions"])
-    model = _load_state(ActionMLP(size, actions, p["cells"], p["scale"]), p["model"], "H^ network")
+    model = _load_state(_gym_net(p, p["cells"]), p["model"], "H^ network")
     fusion = Fusion("human_only", "none", ConstantWeight(0.0)).eval()
     module = TensorDictSequential(
         TensorDictModule(model, in_keys=[keys.OBSERVATION], out_keys=[keys.HUMAN_VALUES]),

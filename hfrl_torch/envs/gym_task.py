@@ -17,6 +17,7 @@ frame to check that the task can be shown at all.
 
 from __future__ import annotations
 
+import importlib
 import os
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -29,6 +30,7 @@ from torchrl.data import Categorical
 from torchrl.envs import EnvBase, GymWrapper, SerialEnv
 
 from hfrl_torch import keys
+from hfrl_torch.models.cnn import image_shape
 
 __all__ = ["RGB", "GymTask", "TaskSpaces", "first_frame", "make_gym_batch", "task_spaces"]
 
@@ -62,6 +64,7 @@ class GymTask:
         """One instance: a Gymnasium env or a TorchRL ``EnvBase``."""
         if self.make is not None:
             return self.make()
+        register_ale(str(self.env_id))
         extra = dict(self.kwargs)
         if self.max_episode_steps is not None:
             extra["max_episode_steps"] = int(self.max_episode_steps)
@@ -76,6 +79,7 @@ class GymTask:
         os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
         os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
         if self.make is None:
+            register_ale(str(self.env_id))
             extra = dict(self.kwargs)
             if self.max_episode_steps is not None:
                 extra["max_episode_steps"] = int(self.max_episode_steps)
@@ -93,15 +97,39 @@ class GymTask:
         return env
 
 
+def register_ale(env_id: str) -> None:
+    """Register the Atari games (``ALE/<Game>-v5``) with Gymnasium before an ``ALE/`` id is made: ale-py
+    ships them and their ROMs but registers them only when asked. ``gym.error.Error`` if it is missing."""
+    if not env_id.startswith("ALE/"):
+        return
+    try:  # optional: only Atari tasks need it
+        ale_py = importlib.import_module("ale_py")
+    except ImportError:
+        raise gym.error.Error(
+            f"{env_id!r} is an Atari game, which needs ale-py: pip install ale-py"
+        ) from None
+    gym.register_envs(ale_py)
+
+
 @dataclass(frozen=True)
 class TaskSpaces:
-    """What a learner needs to know of a task: the observation's length, the actions, the bounds."""
+    """What a learner needs to know of a task: the observation's shape and length, the actions, the bounds.
+
+    A vector observation has ``observation_shape == (S,)``; a frame has ``(H, W, C)`` (channels last, the
+    networks read it through :class:`~hfrl_torch.models.cnn.ActionCNN`), with ``observation_size`` the
+    number of its values."""
 
     observation_size: int
     actions: int
-    low: torch.Tensor  # [S] float32 (-inf where unbounded)
-    high: torch.Tensor  # [S]
-    sample: torch.Tensor  # [2, S] float32: the observations of two resets (seeds 0 and 1), for checks
+    low: torch.Tensor  # [S] float32 (-inf where unbounded); [1] for a frame (its smallest pixel value)
+    high: torch.Tensor  # [S]; [1] for a frame (its largest)
+    sample: torch.Tensor  # [2, *observation_shape] float32: the observations of two resets (seeds 0, 1)
+    observation_shape: tuple[int, ...] = ()
+
+    @property
+    def frame(self) -> tuple[int, int, int] | None:
+        """``(H, W, C)`` where the observation is a frame, else None."""
+        return image_shape(self.observation_shape)
 
 
 def _gym_spaces(env: gym.Env) -> TaskSpaces:
@@ -110,12 +138,20 @@ def _gym_spaces(env: gym.Env) -> TaskSpaces:
         raise ValueError(f"has a {_space_kind(act)} action space ({act}); agent=dqn needs a discrete one")
     if int(act.start) != 0:
         raise ValueError(f"has actions {act} starting at {int(act.start)}; allowed: Discrete(n) from 0")
-    if not isinstance(obs, gym.spaces.Box) or len(obs.shape) != 1:
-        raise ValueError(f"has observations {obs}; allowed for now: a vector (Box of one dimension)")
+    frame = image_shape(obs.shape) if isinstance(obs, gym.spaces.Box) else None
+    if not isinstance(obs, gym.spaces.Box) or (len(obs.shape) != 1 and frame is None):
+        raise ValueError(
+            f"has observations {obs}; allowed: a vector (Box of one dimension) or a frame "
+            "(Box [height, width, 1, 3 or 4 channels])"
+        )
     low = torch.as_tensor(obs.low, dtype=torch.float32)
     high = torch.as_tensor(obs.high, dtype=torch.float32)
+    if frame is not None:
+        low, high = low.min().reshape(1), high.max().reshape(1)
     sample = torch.stack([torch.as_tensor(env.reset(seed=i)[0], dtype=torch.float32) for i in (0, 1)])
-    return TaskSpaces(int(obs.shape[0]), int(act.n), low, high, sample)
+    return TaskSpaces(
+        int(np.prod(obs.shape)), int(act.n), low, high, sample, tuple(int(d) for d in obs.shape)
+    )
 
 
 def _not_rgb(env: Any) -> str | None:
@@ -175,7 +211,7 @@ def _torchrl_spaces(env: EnvBase) -> TaskSpaces:
     if env.batch_size != torch.Size([]):
         raise ValueError(f"returned an env of batch size {list(env.batch_size)}; allowed: unbatched ([])")
     sample = torch.stack([env.reset()[keys.OBSERVATION].to(torch.float32).reshape(size) for _ in (0, 1)])
-    return TaskSpaces(size, int(spec.space.n), low, high, sample)
+    return TaskSpaces(size, int(spec.space.n), low, high, sample, (size,))
 
 
 def task_spaces(task: GymTask) -> TaskSpaces:

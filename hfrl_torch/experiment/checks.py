@@ -670,7 +670,7 @@ def _task_key(cfg: DictConfig) -> str:
 
 def gym_spaces(cfg: DictConfig) -> TaskSpaces:
     """The spaces of ``domain=gym``'s task, built once; ``ConfigError`` for an unknown id, a callable that
-    does not import or fails, continuous actions or non-vector observations."""
+    does not import or fails, continuous actions, observations neither a vector nor a frame."""
     task = make_gym_task(cfg)
     where = _task_key(cfg)
     try:
@@ -689,7 +689,7 @@ def _first(exc: BaseException) -> str:
 
 def check_gym_domain(cfg: DictConfig) -> None:
     """``domain=gym``: the task (a registered id or a callable) and that it has discrete actions and vector
-    observations, its time limit and the simulated trainer's clock."""
+    or frame observations, its time limit and the simulated trainer's clock."""
     make = OmegaConf.select(cfg, "domain.make")
     env_id = OmegaConf.select(cfg, "domain.env_id")
     if make is None and (not isinstance(env_id, str) or not env_id):

@@ -14,7 +14,7 @@ from torchrl.collectors import Collector
 from hfrl_torch import keys
 from hfrl_torch.agents.ppo import PLAYED_WEIGHT, PPO
 from hfrl_torch.envs.gym_task import GymTask, task_spaces
-from hfrl_torch.experiment.learners.gym_dqn import gym_env, observation_mlp
+from hfrl_torch.experiment.learners.gym_dqn import gym_env, observation_net
 from hfrl_torch.fusion.fusion import Fusion
 from hfrl_torch.fusion.schedules import ConstantWeight
 from hfrl_torch.models.mlp import ActionMLP
@@ -24,7 +24,7 @@ SPACES = task_spaces(GymTask("CartPole-v1"))
 
 def _ppo(fusion: Fusion | None, **kwargs) -> PPO:
     torch.manual_seed(0)
-    actor = observation_mlp(SPACES, [16], [1.0] * 4)
+    actor = observation_net(SPACES, [16], [1.0] * 4)
     critic = ActionMLP(SPACES.observation_size, 1, [16])
     return PPO(actor, critic, keys.OBSERVATION, fusion, seed=1, **kwargs)
 

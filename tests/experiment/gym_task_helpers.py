@@ -40,6 +40,42 @@ def make_corridor() -> gym.Env:
     return Corridor()
 
 
+class PixelCorridor(Corridor):
+    """The corridor seen as a picture: a 16 x 16 grey frame with the agent's cell lit (a task whose
+    observation is a frame, read by the CNN)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.observation_space = gym.spaces.Box(0, 255, (16, 16, 1), np.uint8)
+
+    def _obs(self) -> np.ndarray:
+        frame = np.zeros((16, 16, 1), dtype=np.uint8)
+        left = 1 + self.cell * 14 // LENGTH
+        frame[6:10, left : left + 2, 0] = 255
+        return frame
+
+
+def make_pixel_corridor() -> gym.Env:
+    """The corridor as frames."""
+    return PixelCorridor()
+
+
+class GridCorridor(Corridor):
+    """The corridor with a 2-D observation that is no frame (no channel axis): refused in one line."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.observation_space = gym.spaces.Box(0.0, 1.0, (2, 3), np.float32)
+
+    def _obs(self) -> np.ndarray:
+        return np.zeros((2, 3), dtype=np.float32)
+
+
+def make_grid_corridor() -> gym.Env:
+    """The corridor with a [2, 3] observation."""
+    return GridCorridor()
+
+
 def walk_right(obs: torch.Tensor) -> torch.Tensor:
     """The corridor's reference: always right (action 1)."""
     return torch.ones(obs.shape[0], dtype=torch.int64)

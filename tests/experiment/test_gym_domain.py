@@ -67,6 +67,10 @@ def test_the_oracle_judges_against_the_reference_at_its_consistency(reference) -
         (("fusion=linear", "trainer.reference=examples.nope:reference"), "does not import"),
         (("fusion=linear", f"trainer.reference={HELPERS}:wrong_shape"), "of shape []"),
         (("fusion=linear", f"trainer.reference={HELPERS}:absent"), "has no 'absent'"),
+        (
+            (f"domain.make={HELPERS}:make_grid_corridor",),
+            "allowed: a vector (Box of one dimension) or a frame",
+        ),
     ],
 )
 def test_bad_input_is_one_line_before_the_run(compose_train, overrides, message) -> None:
@@ -92,6 +96,32 @@ def test_a_users_own_task_trains_and_evaluates_with_no_edit_in_the_package(run_l
     cfg = compose_config("evaluate", "domain=gym", f"policy={tmp_path}", "episodes=3")
     result = evaluate_gym(cfg)
     assert result["task"].endswith("make_corridor") and result["episodes"] == 3
+
+
+@pytest.mark.parametrize("agent", ["dqn", "tamer"])
+def test_a_task_seen_as_frames_trains_cnns_and_plays_back(run_learner, tmp_path, one_thread, agent) -> None:
+    """Frames ([16, 16, 1] uint8) give DQN's Q and Deep TAMER's H^ as CNNs; the saved policy names the
+    frame's shape, so evaluate.py rebuilds the CNN and plays it."""
+    learner, final = run_learner(
+        tmp_path,
+        "domain=gym",
+        f"agent={agent}",
+        f"domain.make={HELPERS}:make_pixel_corridor",
+        "domain.min_return=-30",
+        f"trainer.reference={HELPERS}:walk_right",
+        *(("fusion=linear", *TINY) if agent == "dqn" else ("trainer=oracle", "agent.boards=4")),
+        "agent.frames=128",
+        "agent.eval_every=128",
+        "agent.eval_episodes=2",
+        "human.batch_size=8",
+    )
+    assert final["frames"] == 128 and learner.events > 10
+    assert learner.spaces.frame == (16, 16, 1)
+    assert type(learner.human.model).__name__ == "ActionCNN"
+    saved = load_checkpoint(tmp_path)["policy"]
+    assert saved["observation_shape"] == [16, 16, 1]
+    result = evaluate_gym(compose_config("evaluate", "domain=gym", f"policy={tmp_path}", "episodes=2"))
+    assert result["task"].endswith("make_pixel_corridor") and result["episodes"] == 2
 
 
 def test_fused_dqn_on_cartpole_beats_random_resumes_and_plays_back(run_learner, tmp_path, one_thread) -> None:

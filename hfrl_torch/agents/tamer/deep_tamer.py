@@ -107,13 +107,16 @@ class DeepTamer:
     ) -> None:
         """Remember each active board's decision ``action`` [B] in ``td`` made at ``time`` (seconds, [B] or
         one); every ``replay_every`` calls, one replay minibatch (once the buffer holds one)."""
-        chosen = self.model.select(self.inputs_of(td), action.reshape(-1)).detach().to(torch.float32).cpu()
+        chosen = self.model.select(self.inputs_of(td), action.reshape(-1)).detach().cpu()
+        if chosen.is_floating_point():  # frames keep their pixels' dtype (uint8: a quarter of the memory)
+            chosen = chosen.to(torch.float32)
         if self.x is None:
-            self.x = torch.zeros(self.boards, self.history, chosen.shape[-1], dtype=torch.float32)
+            self.x = torch.zeros(self.boards, self.history, *chosen.shape[1:], dtype=chosen.dtype)
         act = torch.ones(self.boards, dtype=torch.bool) if active is None else active.reshape(-1).cpu().bool()
         now = torch.as_tensor(time, dtype=torch.float64).reshape(-1).expand(self.boards).cpu()
         a = act.view(-1, 1)
-        self.x = torch.where(a.unsqueeze(-1), torch.cat([self.x[:, 1:], chosen.unsqueeze(1)], 1), self.x)
+        kept = act.view(-1, 1, *[1] * (chosen.dim() - 1))
+        self.x = torch.where(kept, torch.cat([self.x[:, 1:], chosen.unsqueeze(1)], 1), self.x)
         self.actions = torch.where(
             a, torch.cat([self.actions[:, 1:], action.reshape(-1, 1).cpu().to(torch.int64)], 1), self.actions
         )

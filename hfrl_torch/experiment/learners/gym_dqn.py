@@ -47,6 +47,7 @@ from hfrl_torch.experiment.run import Point
 from hfrl_torch.feedback.log import FeedbackLog
 from hfrl_torch.interactive.gym_live import BrowserGymTrainer, GymWatcher
 from hfrl_torch.interactive.messages import MAX_SPEED, MIN_SPEED
+from hfrl_torch.models.cnn import ActionCNN
 from hfrl_torch.models.mlp import ActionMLP
 from hfrl_torch.trainers import Trainer
 from hfrl_torch.trainers.departure import Departure
@@ -61,22 +62,30 @@ __all__ = [
     "gym_env",
     "input_scale",
     "observation",
-    "observation_mlp",
+    "observation_net",
     "play_returns",
 ]
 
 
 def input_scale(spaces: TaskSpaces) -> list[float]:
     """One over each observation's bound where the space bounds it (MountainCar's velocity is within 0.07),
-    else 1."""
+    else 1; ``[1.0]`` for a frame (the CNN reads pixels as 0-255 itself)."""
+    if spaces.frame is not None:
+        return [1.0]
     bound = torch.maximum(spaces.low.abs(), spaces.high.abs())
     ok = torch.isfinite(bound) & (bound > 0)
     return torch.where(ok, 1.0 / torch.where(ok, bound, 1.0), 1.0).tolist()
 
 
-def observation_mlp(spaces: TaskSpaces, cells: list[int], scale: list[float]) -> ActionMLP:
-    """A network from the observation vector to one value per action (Q, or Deep TAMER's H^)."""
-    return ActionMLP(spaces.observation_size, spaces.actions, list(cells), scale)
+def observation_net(
+    spaces: TaskSpaces, cells: list[int], scale: list[float], outputs: int | None = None
+) -> ActionMLP | ActionCNN:
+    """A network from the observation to one value per action (Q, Deep TAMER's H^, PPO's logits) or to
+    ``outputs`` values: an MLP on a vector, DQN's CNN on a frame."""
+    out = spaces.actions if outputs is None else int(outputs)
+    if spaces.frame is not None:
+        return ActionCNN(spaces.frame, out, list(cells))
+    return ActionMLP(spaces.observation_size, out, list(cells), scale)
 
 
 def gym_env(task: GymTask, boards: int, seed: int) -> EnvBase:
@@ -177,11 +186,11 @@ class GymDQN(GymTaskParts, DeepQLearner):
         return [StepCounter(), RewardSum(), *filter(None, [self.watcher])]
 
     def make_dqn(self) -> DeepQ:
-        q = observation_mlp(self.spaces, list(self.cfg.agent.cells), self.scale)
+        q = observation_net(self.spaces, list(self.cfg.agent.cells), self.scale)
         return make_dqn(self.cfg, q, keys.OBSERVATION, None)
 
     def make_human(self) -> HumanValues:
-        model = observation_mlp(self.spaces, list(self.cfg.human.cells), self.scale)
+        model = observation_net(self.spaces, list(self.cfg.human.cells), self.scale)
         return make_deep_tamer(self.cfg, model, observation, self.boards)
 
     def make_trainer(self, log: FeedbackLog) -> Trainer:
@@ -234,6 +243,7 @@ class GymDQN(GymTaskParts, DeepQLearner):
             "gym_dqn",
             task=OmegaConf.to_container(self.cfg.domain, resolve=True),
             observation_size=self.spaces.observation_size,
+            observation_shape=list(self.spaces.observation_shape),
             actions=self.spaces.actions,
             scale=list(self.scale),
             cells=list(self.cfg.agent.cells),

@@ -65,12 +65,11 @@ from hfrl_torch.experiment.factories import (
     make_gym_trainer,
 )
 from hfrl_torch.experiment.learners.deep_q import CollectorLearner
-from hfrl_torch.experiment.learners.gym_dqn import SCORE_KEY, GymTaskParts, greedy_returns, observation_mlp
+from hfrl_torch.experiment.learners.gym_dqn import SCORE_KEY, GymTaskParts, greedy_returns, observation_net
 from hfrl_torch.experiment.learners.tetris_games import TRAINER_LABELS
 from hfrl_torch.experiment.run import Point, WallClockSaves
 from hfrl_torch.fusion.fusion import Fusion
 from hfrl_torch.fusion.transform import FeedbackFusion
-from hfrl_torch.models.mlp import ActionMLP
 from hfrl_torch.trainers.transform import HumanFeedback
 
 __all__ = ["GymPPO"]
@@ -103,8 +102,8 @@ class GymPPO(GymTaskParts, CollectorLearner):
         self.taught = cfg.trainer.name != "none"
         self.fusion: Fusion = make_fusion(cfg, type(self), 1)
         cells = list(a.cells)
-        actor = observation_mlp(self.spaces, cells, self.scale)
-        critic = ActionMLP(self.spaces.observation_size, 1, cells, self.scale)
+        actor = observation_net(self.spaces, cells, self.scale)
+        critic = observation_net(self.spaces, cells, self.scale, outputs=1)
         self.ppo = PPO(
             actor,
             critic,
@@ -124,7 +123,7 @@ class GymPPO(GymTaskParts, CollectorLearner):
         self.human = self.log = self.feedback_transform = None
         modules: list[TensorDictModuleBase] = [self.ppo.actor]
         if self.taught:
-            model = observation_mlp(self.spaces, list(cfg.human.cells), self.scale)
+            model = observation_net(self.spaces, list(cfg.human.cells), self.scale)
             self.human = make_deep_tamer(cfg, model, _observation, self.boards)
             wiring = make_feedback_wiring(
                 cfg,
@@ -248,6 +247,7 @@ class GymPPO(GymTaskParts, CollectorLearner):
             "gym_ppo",
             task=OmegaConf.to_container(self.cfg.domain, resolve=True),
             observation_size=self.spaces.observation_size,
+            observation_shape=list(self.spaces.observation_shape),
             actions=self.spaces.actions,
             scale=list(self.scale),
             cells=list(self.cfg.agent.cells),

@@ -52,7 +52,7 @@ from hfrl_torch.experiment.learners.gym_dqn import (
     greedy_returns,
     gym_env,
     observation,
-    observation_mlp,
+    observation_net,
 )
 from hfrl_torch.experiment.learners.tetris_games import TRAINER_LABELS
 from hfrl_torch.experiment.run import FramesLearner, Point
@@ -82,7 +82,7 @@ class GymTamer(GymTaskParts, FramesLearner):
         self.boards, self.frames_total = int(a.boards), int(a.frames)
         self.eval_every, self.eval_episodes = int(a.eval_every), int(a.eval_episodes)
         self.seconds_per_step = float(cfg.domain.seconds_per_step)
-        model = observation_mlp(self.spaces, list(cfg.human.cells), self.scale)
+        model = observation_net(self.spaces, list(cfg.human.cells), self.scale)
         self.human = make_deep_tamer(cfg, model, observation, self.boards)
         self.fusion = make_fusion(cfg, type(self), 1, option="human_only")
         self.policy = TensorDictSequential(
@@ -271,6 +271,7 @@ class GymTamer(GymTaskParts, FramesLearner):
             "gym_tamer",
             task=OmegaConf.to_container(self.cfg.domain, resolve=True),
             observation_size=self.spaces.observation_size,
+            observation_shape=list(self.spaces.observation_shape),
             actions=self.spaces.actions,
             scale=list(self.scale),
             cells=list(self.cfg.human.cells),
