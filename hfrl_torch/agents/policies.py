@@ -51,12 +51,13 @@ from hfrl_torch.agents.dqn.dqn import CHOSEN_VALUE
 from hfrl_torch.agents.sarsa.policy import load_keeper_policy
 from hfrl_torch.agents.tamer.tamer import placement_deltas
 from hfrl_torch.common.errors import CheckpointError
+from hfrl_torch.common.frames import image_shape
 from hfrl_torch.envs.keepaway import KeepawayConfig, KeeperChooser
 from hfrl_torch.envs.tetris.features import feature_id, feature_size
 from hfrl_torch.fusion.fusion import Fusion
 from hfrl_torch.fusion.schedules import ConstantWeight
 from hfrl_torch.fusion.transform import FusionModule
-from hfrl_torch.models.cnn import ActionCNN, image_shape
+from hfrl_torch.models.cnn import ActionCNN
 from hfrl_torch.models.linear import greedy_placement
 from hfrl_torch.models.mlp import ActionMLP, AfterstateMLP, keeper_scale
 from hfrl_torch.models.tile_coding import TileCoding, keepaway_tile_widths

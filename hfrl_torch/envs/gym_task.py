@@ -30,7 +30,7 @@ from torchrl.data import Categorical
 from torchrl.envs import EnvBase, GymWrapper, SerialEnv
 
 from hfrl_torch import keys
-from hfrl_torch.models.cnn import image_shape
+from hfrl_torch.common.frames import image_shape
 
 __all__ = ["RGB", "GymTask", "TaskSpaces", "first_frame", "make_gym_batch", "task_spaces"]
 

@@ -18,17 +18,11 @@ from torch import nn
 from torch.nn import functional as F
 from torchrl.modules import MLP, ConvNet
 
-__all__ = ["ActionCNN", "image_shape"]
+from hfrl_torch.common.frames import image_shape
+
+__all__ = ["ActionCNN"]
 
 PIXEL_SCALE = 1.0 / 255.0  # uint8 frames to [0, 1]
-
-
-def image_shape(shape: Sequence[int]) -> tuple[int, int, int] | None:
-    """``(height, width, channels)`` where ``shape`` is one frame (channels last, 1, 3 or 4 of them), else
-    None."""
-    if len(shape) != 3 or int(shape[2]) not in (1, 3, 4) or min(int(shape[0]), int(shape[1])) < 8:
-        return None
-    return int(shape[0]), int(shape[1]), int(shape[2])
 
 
 class ActionCNN(nn.Module):

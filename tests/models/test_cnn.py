@@ -5,7 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from hfrl_torch.models.cnn import ActionCNN, image_shape
+from hfrl_torch.common.frames import image_shape
+from hfrl_torch.models.cnn import ActionCNN
 
 
 def test_frames_of_any_leading_shape_give_one_value_per_action():
