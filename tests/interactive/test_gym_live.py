@@ -104,12 +104,23 @@ async def _teach(url: str, presses: int = 14) -> dict[str, Any]:
     return said
 
 
-def _taught(run_learner: Any, run_dir: Path, presses: int, checkpoint: Any = None) -> tuple[Any, Any, dict]:
-    """The learner run in ``run_dir`` with a scripted page (:func:`_teach`) in another thread."""
+def _taught(
+    run_learner: Any,
+    run_dir: Path,
+    presses: int,
+    checkpoint: Any = None,
+    task: tuple[str, ...] = CARTPOLE,
+    before: Any = None,
+) -> tuple[Any, Any, dict]:
+    """The learner run in ``run_dir`` on ``task`` with a scripted page (:func:`_teach`) in another thread;
+    ``before(learner)`` is called first."""
     said: dict[str, Any] = {}
     threads: list[threading.Thread] = []
 
     def page(learner: Any) -> None:
+        if before is not None:
+            before(learner)
+
         def teach() -> None:
             try:
                 said.update(asyncio.run(_teach(learner.teaching.url, presses)))
@@ -120,7 +131,7 @@ def _taught(run_learner: Any, run_dir: Path, presses: int, checkpoint: Any = Non
         threads.append(threading.Thread(target=teach, daemon=True))
         threads[-1].start()
 
-    learner, final = run_learner(run_dir, *CARTPOLE, *LIVE, checkpoint=checkpoint, prepare=page)
+    learner, final = run_learner(run_dir, *task, *LIVE, checkpoint=checkpoint, prepare=page)
     for thread in threads:  # the run may end before the page has read its last message
         thread.join(timeout=60)
     assert "failed" not in said, said.get("failed")
@@ -179,6 +190,41 @@ def test_each_acknowledged_press_on_cartpole_is_logged_once_under_the_step_it_wa
     events = [e for e in load_feedback_log(tmp_path / "feedback.jsonl") if e.session.endswith("/browser")]
     assert [e.seq for e in events] == list(range(15)) and more["end"]["given"] == 1
     assert events[-1].episode == more["acks"][0]["episode"] >= episodes and again.watcher.episode >= episodes
+
+
+def test_an_atari_game_taught_live_logs_each_press_and_its_cnn_h_hat_learns_from_them(
+    run_learner, tmp_path, one_thread
+) -> None:
+    """Deep TAMER's task: ALE/Bowling-v5 taught from the page (``fusion=human_only``: H^ alone acts). The page
+    shows the game's own screen; every acknowledged press is logged once; H^ is the CNN over the frames and
+    its weights move with the presses."""
+    pytest.importorskip("ale_py", reason="the Atari extra (ale-py) is not installed")
+    bowling = (
+        "domain=gym",
+        "domain.env_id=ALE/Bowling-v5",
+        "domain.max_episode_steps=300",  # short greedy evaluations (a game runs thousands of steps)
+        "agent=dqn",
+        "fusion=human_only",
+        "agent.buffer_size=64",
+        "human.buffer_size=256",
+        "human.batch_size=8",
+    )
+    start: dict[str, torch.Tensor] = {}
+
+    def remember(learner: Any) -> None:
+        start.update({k: v.clone() for k, v in learner.human.model.state_dict().items()})
+
+    learner, final, said = _taught(run_learner, tmp_path, 6, task=bowling, before=remember)
+    assert final is not None and said["errors"] == [] and len(said["acks"]) == 6
+    events = [e for e in load_feedback_log(tmp_path / "feedback.jsonl") if e.session.endswith("/browser")]
+    assert [e.value for e in events] == [1.0] * 6 and [e.seq for e in events] == list(range(6))
+    assert said["config"]["task"] == "ALE/Bowling-v5"
+    frame = _image(said["frames"][-1]["image"])
+    assert frame.shape[2] == 3 and frame.std() > 0  # the game's own screen
+    # learned: the presses the loop drained before the finish (the last ones may still wait in the queue)
+    assert type(learner.human.model).__name__ == "ActionCNN" and 1 <= learner.human.applied <= 6
+    moved = [k for k, v in learner.human.model.state_dict().items() if not torch.equal(v, start[k])]
+    assert moved  # H^ learned from the presses
 
 
 def test_frames_larger_than_the_page_shows_are_scaled_down() -> None:
