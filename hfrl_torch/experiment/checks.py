@@ -45,6 +45,7 @@ from hfrl_torch.interactive.timeline import MAX_REACTION_S, MIN_REACTION_S
 from hfrl_torch.models.tile_coding import MAX_SIZE
 from hfrl_torch.trainers.departure import LEAVE_UNITS
 from hfrl_torch.trainers.reference_oracle import right_actions
+from hfrl_torch.trainers.reference_value_proxy import action_values
 
 TRAINERS = ("none", "oracle", "value_proxy", "replay", "interactive")
 KEEPAWAY_TRAINERS = ("none", "oracle", "replay", "interactive")
@@ -660,7 +661,7 @@ def check_keepaway_feedback_trainer(cfg: DictConfig) -> None:
 
 # ------------------------------------------------------------------------------- gym
 
-GYM_TRAINERS = ("none", "oracle", "replay", "interactive")
+GYM_TRAINERS = ("none", "oracle", "value_proxy", "replay", "interactive")
 
 
 def _task_key(cfg: DictConfig) -> str:
@@ -744,7 +745,7 @@ def check_gym_tamer(cfg: DictConfig) -> None:
             "trainer=none with agent=tamer: TAMER alone learns only from a trainer's feedback; "
             "choose trainer=oracle (with trainer.reference=...)"
         )
-    check_gym_trainer(cfg, ("oracle",))  # a replayed log: not yet for TAMER alone
+    check_gym_trainer(cfg, ("oracle", "value_proxy"))  # a replayed log: not yet for TAMER alone
     check_departure(cfg)
 
 
@@ -786,7 +787,7 @@ def check_gym_ppo(cfg: DictConfig) -> None:
                 "(or fusion=none)"
             )
         return
-    check_gym_trainer(cfg, ("none", "oracle"))
+    check_gym_trainer(cfg, ("none", "oracle", "value_proxy"))
 
 
 def check_gym_trainer(cfg: DictConfig, allowed: Sequence[str]) -> None:
@@ -805,6 +806,10 @@ def check_gym_trainer(cfg: DictConfig, allowed: Sequence[str]) -> None:
         return
     if trainer == "replay":
         check_replay_log(cfg)
+    elif trainer == "value_proxy":
+        require_choice(cfg, "trainer.mode", ("sign", "scaled"))
+        require_float(cfg, "trainer.scale", 1e-12)
+        check_gym_reference(cfg, values=True)
     else:
         check_gym_reference(cfg)
         require_float(cfg, "trainer.frequency", 0.0, 1.0)
@@ -831,11 +836,17 @@ def check_gym_frames(cfg: DictConfig) -> None:
             env.close()
 
 
-def check_gym_reference(cfg: DictConfig) -> None:
+def check_gym_reference(cfg: DictConfig, values: bool = False) -> None:
     """``trainer.reference``: a callable that imports, or a ``domain=gym`` run directory or checkpoint of
     the task's observation size and action count, that on two of the task's observations returns actions
-    [2] or action values [2, A]."""
+    [2] or action values [2, A] (``values``: the value proxy's, action values only)."""
     reference = OmegaConf.select(cfg, "trainer.reference")
+    if reference is None and values:
+        raise ConfigError(
+            "trainer=value_proxy on domain=gym needs trainer.reference=<package.module:callable> returning "
+            "action values [B, A] of observations [B, ...], or a domain=gym run directory or checkpoint "
+            "(its Q, or its H^)"
+        )
     if reference is None:
         raise ConfigError(
             "trainer=oracle on domain=gym needs trainer.reference=<package.module:callable>, a policy of "
@@ -859,7 +870,14 @@ def check_gym_reference(cfg: DictConfig) -> None:
                 f"{spaces.actions} actions"
             )
     try:
-        right_actions(policy, spaces.sample.clone(), spaces.actions)
+        if values:
+            action_values(
+                policy.values if isinstance(policy, PolicyReference) else policy,
+                spaces.sample.clone(),
+                spaces.actions,
+            )
+        else:
+            right_actions(policy, spaces.sample.clone(), spaces.actions)
     except ValueError as exc:
         raise ConfigError(f"trainer.reference={reference!r} {_first(exc)}") from None
     except Exception as exc:  # the user's policy may fail in any way

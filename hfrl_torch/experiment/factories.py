@@ -58,6 +58,7 @@ from hfrl_torch.trainers.departure import Departure
 from hfrl_torch.trainers.keepaway_oracle import KeepawayOracle
 from hfrl_torch.trainers.keepaway_replay import KeepawayReplay
 from hfrl_torch.trainers.reference_oracle import Reference, ReferenceOracle
+from hfrl_torch.trainers.reference_value_proxy import ReferenceValueProxy
 
 # ------------------------------------------------------------------------------- run
 
@@ -562,6 +563,17 @@ class PolicyReference:
         td = TensorDict({keys.OBSERVATION: obs.to(torch.float32)}, batch_size=obs.shape[:1])
         return self.module(td).get(keys.ACTION).reshape(-1).to(torch.int64)
 
+    @torch.no_grad()
+    def values(self, obs: torch.Tensor) -> torch.Tensor:
+        """The action values [B, A] the policy acts on: fused Q and H^ where it was taught, else Q (a TAMER
+        run's: H^)."""
+        td = self.module(TensorDict({keys.OBSERVATION: obs.to(torch.float32)}, batch_size=obs.shape[:1]))
+        for key in (keys.FUSED_VALUES, keys.ENV_VALUES, keys.HUMAN_VALUES):
+            found = td.get(key, None)
+            if found is not None:
+                return found.to(torch.float64)
+        raise ValueError(f"the saved policy {self.path} writes no action values")
+
 
 def make_gym_reference(cfg: DictConfig) -> Reference:
     """The reference policy ``trainer.reference`` names (observations [B, S] -> actions or action values): a
@@ -573,12 +585,24 @@ def make_gym_reference(cfg: DictConfig) -> Reference:
     return load_callable(reference, "trainer.reference")
 
 
+def make_gym_values(cfg: DictConfig) -> Callable[[torch.Tensor], object]:
+    """The action values ``trainer.reference`` names for the value proxy: a saved ``domain=gym`` policy's
+    (:meth:`PolicyReference.values`) or a ``module:callable``'s."""
+    reference = cfg.trainer.reference
+    if names_a_checkpoint(reference):
+        return PolicyReference(load_checkpoint(str(reference), domain="gym")).values
+    return load_callable(reference, "trainer.reference")
+
+
 def make_gym_trainer(cfg: DictConfig, actions: int, log: FeedbackLog | None) -> Trainer:
-    """The trainer of ``domain=gym``: a replayed log, or the simulated oracle against ``trainer.reference``
-    with ``trainer.timing``."""
+    """The trainer of ``domain=gym``: a replayed log, the value proxy on ``trainer.reference``'s action
+    values, or the simulated oracle against ``trainer.reference``, with ``trainer.timing``."""
     t = cfg.trainer
     if t.name == "replay":
         return make_replay(cfg, log)
+    if t.name == "value_proxy":
+        proxy = ReferenceValueProxy(make_gym_values(cfg), actions, t.mode, t.scale, t.reaction)
+        return with_timing(cfg, proxy, log)
     base = ReferenceOracle(
         make_gym_reference(cfg),
         actions,

@@ -18,6 +18,7 @@ from hfrl_torch.experiment.cli import CHECKED, compose_config, precheck
 from hfrl_torch.experiment.config import validate_train
 from hfrl_torch.experiment.gym_evaluation import evaluate_gym
 from hfrl_torch.experiment.learners.gym_dqn import gym_env
+from hfrl_torch.feedback.log import load_feedback_log
 from hfrl_torch.trainers.reference_oracle import ReferenceOracle
 
 HELPERS = "tests.experiment.gym_task_helpers"
@@ -71,6 +72,14 @@ def test_the_oracle_judges_against_the_reference_at_its_consistency(reference) -
             (f"domain.make={HELPERS}:make_grid_corridor",),
             "allowed: a vector (Box of one dimension) or a frame",
         ),
+        (
+            ("fusion=linear", "trainer=value_proxy"),
+            "trainer=value_proxy on domain=gym needs trainer.reference",
+        ),
+        (
+            ("fusion=linear", "trainer=value_proxy", "trainer.reference=examples.cartpole:reference"),
+            "needs float",
+        ),
     ],
 )
 def test_bad_input_is_one_line_before_the_run(compose_train, overrides, message) -> None:
@@ -122,6 +131,31 @@ def test_a_task_seen_as_frames_trains_cnns_and_plays_back(run_learner, tmp_path,
     assert saved["observation_shape"] == [16, 16, 1]
     result = evaluate_gym(compose_config("evaluate", "domain=gym", f"policy={tmp_path}", "episodes=2"))
     assert result["task"].endswith("make_pixel_corridor") and result["episodes"] == 2
+
+
+def test_the_value_proxy_judges_by_a_saved_runs_action_values(run_learner, tmp_path, one_thread) -> None:
+    """``trainer=value_proxy``: a callable's action values, then a saved run's (its Q), give the feedback a
+    fused DQN learns from; the corridor's values say right is better, so the events are +1 and -1."""
+    own = (f"domain.make={HELPERS}:make_corridor", "domain.min_return=-30", *TINY, "agent.eval_every=128")
+    proxy = ("fusion=linear", "trainer=value_proxy", "trainer.timing.enabled=false", "agent.frames=128")
+    values = f"trainer.reference={HELPERS}:walk_right_values"
+    learner, final = run_learner(tmp_path / "callable", "domain=gym", "agent=dqn", *own, *proxy, values)
+    events = load_feedback_log(tmp_path / "callable" / "feedback.jsonl")
+    assert final["frames"] == 128 and len(events) > 50  # one event a step (no step without a better action)
+    assert {e.value for e in events} == {1.0, -1.0} and {e.source for e in events} == {
+        "simulated:value_proxy"
+    }
+    assert learner.human.applied > 0
+    run_learner(tmp_path / "saved", "domain=gym", "agent=dqn", *own, "agent.frames=128")
+    judged, final = run_learner(
+        tmp_path / "judged",
+        "domain=gym",
+        "agent=dqn",
+        *own,
+        *proxy,
+        f"trainer.reference={tmp_path / 'saved'}",
+    )
+    assert final["frames"] == 128 and judged.human.applied > 0
 
 
 def test_fused_dqn_on_cartpole_beats_random_resumes_and_plays_back(run_learner, tmp_path, one_thread) -> None:
