@@ -46,7 +46,7 @@ _COIN_SALT = 0x5BD1E995
 _COIN_RESOLUTION = 1 << 24
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _rescale(values: np.ndarray, over: np.ndarray, n: int, any_alive: bool, out: np.ndarray) -> None:
     """``(v - min) / (max - min)`` over the placements that can be chosen (0 where all are equal)."""
     lo = np.inf
@@ -61,7 +61,7 @@ def _rescale(values: np.ndarray, over: np.ndarray, n: int, any_alive: bool, out:
         out[a] = (values[a] - lo) / span if span > 0 else 0.0
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True, parallel=True)
 def play_fused_games(
     env_weights: np.ndarray,
     human_weights: np.ndarray,

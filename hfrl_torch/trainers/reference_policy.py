@@ -28,7 +28,7 @@ from hfrl_torch.envs.tetris.features import DELLACHERIE, DELLACHERIE_WEIGHTS
 from hfrl_torch.envs.tetris.pieces import placement_table
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _evaluate(
     rows: np.ndarray,
     heights: np.ndarray,

@@ -16,7 +16,7 @@ import numba
 import numpy as np
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def intercept_search(
     pos: np.ndarray,
     vel: np.ndarray,
@@ -103,7 +103,7 @@ def intercept_search(
                 points_out[b, p, 1] = ry
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def least_congested_points(
     grid: np.ndarray,
     players: np.ndarray,
@@ -159,7 +159,7 @@ def least_congested_points(
         none_open[b] = all_blocked
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def push_apart(
     pos: np.ndarray,
     pairs: np.ndarray,

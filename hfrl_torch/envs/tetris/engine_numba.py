@@ -41,7 +41,7 @@ def _popcount(x: int) -> int:
     return ((x * 0x0101010101010101) >> 56) & 0xFF
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _place(
     rows: np.ndarray,
     heights: np.ndarray,
@@ -106,7 +106,7 @@ def _place(
     return lines, land, removed_piece_cells, over
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def spawn_blocked(rows: np.ndarray, height: int, width: int, spawn_masks: np.ndarray, piece: int) -> bool:
     """True if the piece in its spawn orientation at the top centre overlaps the stack."""
     ph = 0
@@ -119,7 +119,7 @@ def spawn_blocked(rows: np.ndarray, height: int, width: int, spawn_masks: np.nda
     return False
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _features(
     rows: np.ndarray,
     heights: np.ndarray,
@@ -227,7 +227,7 @@ def _features(
         out[8] = _popcount(seen)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def filled_cells(rows: np.ndarray, nrows: int) -> int:
     """Filled cells of a board (``nrows`` row bitmasks)."""
     n = 0
@@ -236,7 +236,7 @@ def filled_cells(rows: np.ndarray, nrows: int) -> int:
     return n
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def board_state_features(
     rows: np.ndarray, heights: np.ndarray, width: int, height: int, fid: int, filled: int, out: np.ndarray
 ) -> None:
@@ -304,7 +304,7 @@ def piece_afterstates(
     return n
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def best_placement(values: np.ndarray, over: np.ndarray, n: int) -> int:
     """The engines' choice among placements 0..n-1: the highest value, the first on ties, and a
     game-ending placement only when every placement ends the game (then the best of them)."""
@@ -315,7 +315,7 @@ def best_placement(values: np.ndarray, over: np.ndarray, n: int) -> int:
     return best
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True, parallel=True)
 def afterstates_batch(
     rows: np.ndarray,
     heights: np.ndarray,
@@ -373,7 +373,7 @@ def afterstates_batch(
         out_mask[b, :n] = True
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def board_features(
     rows: np.ndarray, heights: np.ndarray, width: int, height: int, fid: int, out: np.ndarray
 ) -> None:
@@ -383,7 +383,7 @@ def board_features(
         board_state_features(rows[b], heights[b], width, height, fid, filled_cells(rows[b], nrows), out[b])
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def step_batch(
     rows: np.ndarray,
     heights: np.ndarray,
@@ -439,7 +439,7 @@ def step_batch(
             alive[b] = False
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True, parallel=True)
 def play_games(
     weights: np.ndarray,
     seeds: np.ndarray,
@@ -574,7 +574,7 @@ def spawn_masks(table: PlacementTable) -> np.ndarray:
     return out
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def reset_batch(
     mask: np.ndarray,
     seeds: np.ndarray,
@@ -597,7 +597,7 @@ def reset_batch(
             pieces[b] = piece_at(keys[b], 0, bag)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def pieces_at(keys: np.ndarray, index: np.ndarray, bag: bool, out: np.ndarray) -> None:
     """``out[b]`` = piece ``index[b]`` of game ``keys[b]``."""
     for b in range(keys.shape[0]):

@@ -24,7 +24,7 @@ def _mulmod32(x: int, c: int) -> int:
     return (x * (c & 0xFFFF) + (((x * (c >> 16)) & 0xFFFF) << 16)) & MASK32
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def mix32(x: int) -> int:
     """lowbias32 integer hash (Wellons) on the low 32 bits of x."""
     x &= MASK32
@@ -36,14 +36,14 @@ def mix32(x: int) -> int:
     return x
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def game_key(seed: int) -> int:
     """32-bit key of a game from its 63-bit seed."""
     k0 = mix32((seed & MASK32) ^ _GOLDEN)
     return mix32(k0 ^ ((seed >> 32) & MASK32))
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def piece_at(key: int, index: int, bag: bool) -> int:
     """Piece number (0..6, order I O T S Z L J) of the ``index``-th piece of the game ``key``."""
     if not bag:
@@ -58,7 +58,7 @@ def piece_at(key: int, index: int, bag: bool) -> int:
     return perm[index % 7]
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def uniform_index(key: int, index: int, n: int) -> int:
     """A uniform draw in [0, n) for step ``index`` of the random stream ``key`` (random policy)."""
     h = mix32(key ^ mix32(index ^ _POLICY_SALT))

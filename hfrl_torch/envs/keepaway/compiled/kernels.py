@@ -189,7 +189,7 @@ def _any_cycle(
                 must_out[b] = must
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def advance_any(
     st: CycleState,
     rng: np.ndarray,
