@@ -101,9 +101,11 @@ def _unsent_bytes(port: int, peers: list[socket.socket]) -> int:
 
 def test_pages_that_never_read_do_not_delay_another_participants_acknowledgements(served):
     """The teacher's acknowledgements with three stalled pages open (two of the other participant's, one
-    of their own) against the same teacher's just before without them. On a machine this loaded by its
-    runs (and other work), the limit is 100 ms p99, or twice the p99 without stalled pages where that is
-    already over 50 ms; a page that blocked the relay would hold acknowledgements for seconds."""
+    of their own) against the same teacher's just before without them. A page that blocked the relay would
+    hold every acknowledgement after it, for seconds. Over 40 presses a p99 is the slowest one alone, and
+    about one run in four has a single acknowledgement of 150-200 ms with or without stalled pages (a pause
+    of the run itself, source not found); so the limit is on the p95 (100 ms, or twice the p95 without
+    stalled pages where that is already over 50 ms) and on the slowest (1 s)."""
     port = int(served.study.base.rsplit(":", 1)[1])
     teacher_code, other = served.codes
 
@@ -127,16 +129,20 @@ def test_pages_that_never_read_do_not_delay_another_participants_acknowledgement
                 s.close()
         return teacher, held
 
-    p99 = {}
+    p95, slowest = {}, {}
     for stall in (False, True):
         teacher, held = asyncio.run(measured(stall))
         ms = [m for m in (p.ack_ms for p in teacher.record.acked) if m is not None]
         assert len(ms) >= 35, [p.error for p in teacher.record.presses]
-        p99[stall] = percentile(ms, 99)
-    print(f"ack p99 without stalled pages {p99[False]:.1f} ms, with {p99[True]:.1f} ms ({held} bytes held)")
+        p95[stall], slowest[stall] = percentile(ms, 95), max(ms)
+    print(
+        f"ack p95 without stalled pages {p95[False]:.1f} ms, with {p95[True]:.1f} ms (slowest "
+        f"{slowest[False]:.1f} and {slowest[True]:.1f} ms; {held} bytes held)"
+    )
     assert held > 50_000, f"the stalled pages hold only {held} bytes in the kernel: they are not stalled"
-    limit = ACK_P99_MS if p99[False] < ACK_P99_MS / 2 else 2 * p99[False]
-    assert p99[True] < limit, f"ack p99 {p99[True]:.1f} ms with stalled pages, {p99[False]:.1f} ms without"
+    limit = ACK_P99_MS if p95[False] < ACK_P99_MS / 2 else 2 * p95[False]
+    assert p95[True] < limit, f"ack p95 {p95[True]:.1f} ms with stalled pages, {p95[False]:.1f} ms without"
+    assert slowest[True] < 1000.0, f"an acknowledgement took {slowest[True]:.0f} ms with stalled pages"
 
 
 def test_two_thousand_idle_connections_under_a_1024_handle_limit_leave_the_study_working(served):
