@@ -19,13 +19,10 @@ import torch
 from tensordict import TensorDictBase
 
 from hfrl_torch import keys
-from hfrl_torch.feedback.events import MAX_ABS_FEEDBACK
 from hfrl_torch.feedback.log import FeedbackLog
-from hfrl_torch.trainers.base import Events, Trainer, all_active
+from hfrl_torch.trainers.value_proxy import ValueProxyTrainer
 
 __all__ = ["ReferenceValueProxy", "action_values"]
-
-MODES = ("sign", "scaled")
 
 Values = Callable[[torch.Tensor], object]  # observations [B, ...] -> action values [B, A]
 
@@ -49,9 +46,9 @@ def action_values(values: Values, obs: torch.Tensor, actions: int) -> torch.Tens
     return q
 
 
-class ReferenceValueProxy(Trainer):
+class ReferenceValueProxy(ValueProxyTrainer):
     """Feedback from the advantage of the action taken under a reference's action values (module docstring;
-    source ``"simulated:value_proxy"``).
+    source ``"simulated:value_proxy"``): Tetris's value proxy with the advantage as its change of value.
 
     :param values: the reference's action values of an observation batch.
     :param actions: A, the task's number of actions.
@@ -62,8 +59,6 @@ class ReferenceValueProxy(Trainer):
     :param log: feedback log every event is appended to.
     """
 
-    source = "simulated:value_proxy"
-
     def __init__(
         self,
         values: Values,
@@ -73,32 +68,13 @@ class ReferenceValueProxy(Trainer):
         reaction: float = 0.3,
         log: FeedbackLog | None = None,
     ) -> None:
-        super().__init__(log)
-        if mode not in MODES:
-            raise ValueError(f"value proxy mode must be one of {MODES}, got {mode!r}")
-        if reaction <= 0:
-            raise ValueError(f"value proxy reaction must be > 0, got {reaction!r}")
+        super().__init__(mode, scale, reaction=reaction, log=log)
         self.values, self.actions = values, int(actions)
-        self.mode, self.scale, self.reaction = mode, float(scale), float(reaction)
 
-    def advantage(self, obs: TensorDictBase, action: torch.Tensor) -> torch.Tensor:
+    def value_change(
+        self, obs: TensorDictBase, action: torch.Tensor, active: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """The taken action's value less the mean of the actions' values, per board [B] (float64)."""
         q = action_values(self.values, obs.get(keys.OBSERVATION), self.actions)
         taken = q.gather(-1, action.reshape(-1, 1).to(torch.int64).cpu()).squeeze(-1)
         return taken - q.mean(-1)
-
-    def give(
-        self,
-        obs: TensorDictBase,
-        action: torch.Tensor,
-        time: float,
-        episode: torch.Tensor,
-        active: torch.Tensor | None = None,
-    ) -> Events:
-        act = all_active(obs, active)
-        change = self.advantage(obs, action)
-        if self.mode == "sign":
-            h = torch.sign(change)
-        else:
-            h = (self.scale * change).clamp(-MAX_ABS_FEEDBACK, MAX_ABS_FEEDBACK)
-        return self._one_per_board(h, act.cpu() & (h != 0), time + self.reaction, obs, episode)

@@ -46,5 +46,5 @@ def test_only_finite_action_values_of_the_right_shape_are_taken():
         action_values(lambda o: torch.zeros(2, 2), obs, 3)
     with pytest.raises(ValueError, match="not finite"):
         action_values(lambda o: torch.full((2, 3), float("nan")), obs, 3)
-    with pytest.raises(ValueError, match="mode must be one of"):
+    with pytest.raises(ValueError, match=r"mode='loud' is invalid; allowed: sign, scaled"):
         ReferenceValueProxy(_values, 3, mode="loud")
