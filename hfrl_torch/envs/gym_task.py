@@ -64,11 +64,15 @@ class GymTask:
         """One instance: a Gymnasium env or a TorchRL ``EnvBase``."""
         if self.make is not None:
             return self.make()
+        return self._gym_make()
+
+    def _gym_make(self, **more: Any) -> gym.Env:
+        """``gym.make`` of ``env_id`` with the task's time limit and keyword arguments, and ``more``."""
         register_ale(str(self.env_id))
         extra = dict(self.kwargs)
         if self.max_episode_steps is not None:
             extra["max_episode_steps"] = int(self.max_episode_steps)
-        return gym.make(str(self.env_id), **extra)
+        return gym.make(str(self.env_id), **extra, **more)
 
     def make_watched(self) -> gym.Env:
         """One instance that renders its frames as RGB arrays (``render_mode="rgb_array"``), for a person to
@@ -79,12 +83,8 @@ class GymTask:
         os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
         os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
         if self.make is None:
-            register_ale(str(self.env_id))
-            extra = dict(self.kwargs)
-            if self.max_episode_steps is not None:
-                extra["max_episode_steps"] = int(self.max_episode_steps)
             try:
-                env = gym.make(str(self.env_id), render_mode=RGB, **extra)
+                env = self._gym_make(render_mode=RGB)
             except TypeError:  # an env of the old API, which takes no render_mode
                 raise ValueError(f"cannot be made with render_mode={RGB!r}") from None
         else:
