@@ -34,7 +34,7 @@ from hfrl_torch.envs.keepaway.params import (
 )
 from hfrl_torch.envs.tetris.env import ENGINES
 from hfrl_torch.envs.tetris.features import FEATURE_SETS
-from hfrl_torch.experiment.factories import PolicyReference, make_gym_reference, make_gym_task
+from hfrl_torch.experiment.factories import PolicyReference, make_gym_reference, make_gym_task, values_of
 from hfrl_torch.feedback.credit import CREDITS
 from hfrl_torch.feedback.log import read_feedback_log
 from hfrl_torch.fusion.schemes import FUSIONS
@@ -841,17 +841,16 @@ def check_gym_reference(cfg: DictConfig, values: bool = False) -> None:
     the task's observation size and action count, that on two of the task's observations returns actions
     [2] or action values [2, A] (``values``: the value proxy's, action values only)."""
     reference = OmegaConf.select(cfg, "trainer.reference")
-    if reference is None and values:
-        raise ConfigError(
-            "trainer=value_proxy on domain=gym needs trainer.reference=<package.module:callable> returning "
-            "action values [B, A] of observations [B, ...], or a domain=gym run directory or checkpoint "
-            "(its Q, or its H^)"
-        )
     if reference is None:
+        returning = (
+            "returning action values [B, A] of observations [B, ...]"
+            if values
+            else "a policy of observations [B, S] returning actions [B] or action values [B, A] "
+            "(e.g. examples.cartpole:reference)"
+        )
         raise ConfigError(
-            "trainer=oracle on domain=gym needs trainer.reference=<package.module:callable>, a policy of "
-            "observations [B, S] returning actions [B] or action values [B, A] "
-            "(e.g. examples.cartpole:reference), or a domain=gym run directory or checkpoint"
+            f"trainer={cfg.trainer.name} on domain=gym needs trainer.reference=<package.module:callable>, "
+            f"{returning}, or a domain=gym run directory or checkpoint"
         )
     try:
         policy = make_gym_reference(cfg)
@@ -871,11 +870,7 @@ def check_gym_reference(cfg: DictConfig, values: bool = False) -> None:
             )
     try:
         if values:
-            action_values(
-                policy.values if isinstance(policy, PolicyReference) else policy,
-                spaces.sample.clone(),
-                spaces.actions,
-            )
+            action_values(values_of(policy), spaces.sample.clone(), spaces.actions)
         else:
             right_actions(policy, spaces.sample.clone(), spaces.actions)
     except ValueError as exc:

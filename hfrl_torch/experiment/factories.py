@@ -585,13 +585,10 @@ def make_gym_reference(cfg: DictConfig) -> Reference:
     return load_callable(reference, "trainer.reference")
 
 
-def make_gym_values(cfg: DictConfig) -> Callable[[torch.Tensor], object]:
-    """The action values ``trainer.reference`` names for the value proxy: a saved ``domain=gym`` policy's
-    (:meth:`PolicyReference.values`) or a ``module:callable``'s."""
-    reference = cfg.trainer.reference
-    if names_a_checkpoint(reference):
-        return PolicyReference(load_checkpoint(str(reference), domain="gym")).values
-    return load_callable(reference, "trainer.reference")
+def values_of(reference: Reference) -> Callable[[torch.Tensor], object]:
+    """What the value proxy reads of a reference :func:`make_gym_reference` made: a saved policy's action
+    values (:meth:`PolicyReference.values`), or the user's callable itself."""
+    return reference.values if isinstance(reference, PolicyReference) else reference
 
 
 def make_gym_trainer(cfg: DictConfig, actions: int, log: FeedbackLog | None) -> Trainer:
@@ -601,7 +598,7 @@ def make_gym_trainer(cfg: DictConfig, actions: int, log: FeedbackLog | None) -> 
     if t.name == "replay":
         return make_replay(cfg, log)
     if t.name == "value_proxy":
-        proxy = ReferenceValueProxy(make_gym_values(cfg), actions, t.mode, t.scale, t.reaction)
+        proxy = ReferenceValueProxy(values_of(make_gym_reference(cfg)), actions, t.mode, t.scale, t.reaction)
         return with_timing(cfg, proxy, log)
     base = ReferenceOracle(
         make_gym_reference(cfg),
