@@ -15,6 +15,8 @@ from pathlib import Path
 import aiohttp
 from study_proc import TETRIS, StudyProc, study_args
 
+from hfrl_torch.feedback.log import read_feedback_log
+from hfrl_torch.interactive.journal import JOURNAL_NAME, read_journal
 from hfrl_torch.study import layout
 from hfrl_torch.study.client import Participant, check_presses
 
@@ -81,6 +83,19 @@ async def _ready(base: str, codes: list[str], timeout: float = 90) -> list[dict]
             await asyncio.sleep(0.5)
 
 
+def _journal_and_log(directory: Path, code: str) -> str:
+    """The run's journaled presses against its log's browser events and the worker's log's end, for a
+    failure's message."""
+    run = layout.run_dir(directory, code)
+    journal = read_journal(run / JOURNAL_NAME)
+    events = [e for e in read_feedback_log(run / "feedback.jsonl").events if e.session.endswith("/browser")]
+    worker = layout.worker_log(directory, code)
+    journaled = [(j.n, j.value, j.source, j.episode, j.step) for j in journal]
+    logged = [(e.seq, e.value, e.source, e.episode, e.step) for e in events]
+    tail = worker.read_text()[-3000:] if worker.exists() else ""
+    return f"journal (n, value, source, episode, step): {journaled}\nlog (seq, ...): {logged}\n{tail}"
+
+
 def test_kill_9_of_the_study_loses_no_acknowledged_press_and_resumes_everyone(tmp_path):
     directory = tmp_path / "study"
     args = study_args(directory, 3, {"tetris": TETRIS})
@@ -111,7 +126,12 @@ def test_kill_9_of_the_study_loses_no_acknowledged_press_and_resumes_everyone(tm
                 layout.run_dir(directory, person.record.code), person.teacher.record.presses
             )
             assert check["acked"] >= ACKED_BEFORE_KILL
-            assert check["lost"] == 0 and check["duplicated"] == 0, check
-            assert check["logged"] == check["journaled"] >= check["acked"], check
+            seen = (
+                _journal_and_log(directory, person.record.code)
+                if check["lost"] or check["duplicated"]
+                else ""
+            )
+            assert check["lost"] == 0 and check["duplicated"] == 0, (check, seen)
+            assert check["logged"] == check["journaled"] >= check["acked"], (check, seen)
     finally:
         again.stop()
