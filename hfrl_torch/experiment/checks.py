@@ -727,8 +727,9 @@ def check_gym_dqn(cfg: DictConfig) -> None:
 
 
 def check_gym_tamer(cfg: DictConfig) -> None:
-    """TAMER alone on any task: its budget, Deep TAMER's H^ on the observation, and the oracle it cannot do
-    without (against ``trainer.reference``), which may leave (``trainer.leave_after``)."""
+    """TAMER alone on any task: its budget, Deep TAMER's H^ on the observation, and the trainer it cannot do
+    without (the oracle against ``trainer.reference``, the value proxy, a replayed log or a person), which
+    may leave (``trainer.leave_after``)."""
     a = "agent."
     frames = require_int(cfg, a + "frames", 1)
     require_int(cfg, a + "boards", 1, 4096)
@@ -736,22 +737,23 @@ def check_gym_tamer(cfg: DictConfig) -> None:
     require_int(cfg, a + "eval_episodes", 1, 4096)
     fusion, trainer = cfg.fusion.name, cfg.trainer.name
     if fusion != "none":
+        picked = " (trainer=interactive picks fusion=linear unless told)" if trainer == "interactive" else ""
         raise ConfigError(
-            f"fusion={fusion!r} with agent=tamer: TAMER acts on H^ alone; use fusion=none, or agent=dqn "
-            f"fusion={fusion} to fuse H^ with a DQN"
+            f"fusion={fusion!r} with agent=tamer{picked}: TAMER acts on H^ alone; use fusion=none, or "
+            f"agent=dqn fusion={fusion} to fuse H^ with a DQN"
         )
     if trainer == "none":
         raise ConfigError(
             "trainer=none with agent=tamer: TAMER alone learns only from a trainer's feedback; "
-            "choose trainer=oracle (with trainer.reference=...)"
+            "choose trainer=oracle (with trainer.reference=...), value_proxy, replay or interactive"
         )
-    check_gym_trainer(cfg, ("oracle", "value_proxy"))  # a replayed log: not yet for TAMER alone
+    check_gym_trainer(cfg, GYM_TRAINERS)
     check_departure(cfg)
 
 
 def check_gym_ppo(cfg: DictConfig) -> None:
     """PPO on any task: its budget, networks and loss, the fusion schemes that act on a softmax policy, H^
-    and the oracle against ``trainer.reference``."""
+    and its trainer (the oracle against ``trainer.reference``, the value proxy, a replayed log, a person)."""
     a = "agent."
     require_int(cfg, a + "frames", 1)
     boards = require_int(cfg, a + "boards", 1, 4096)
@@ -787,7 +789,7 @@ def check_gym_ppo(cfg: DictConfig) -> None:
                 "(or fusion=none)"
             )
         return
-    check_gym_trainer(cfg, ("none", "oracle", "value_proxy"))
+    check_gym_trainer(cfg, GYM_TRAINERS)
 
 
 def check_gym_trainer(cfg: DictConfig, allowed: Sequence[str]) -> None:

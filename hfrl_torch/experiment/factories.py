@@ -334,10 +334,11 @@ def make_live_teaching(
     )
     session.set_live(False)  # nothing to judge until the learner shows its game (start-up takes seconds)
     session.info = dict(info or {})
-    if not blind:
+    if not blind:  # TAMER alone (fusion=none) acts on H^ alone, as fusion=human_only does
+        scheme = "human_only" if fusion.decision == "human_only" else str(cfg.fusion.name)
         session.info |= {
             "weight_name": WEIGHT_NAME,
-            "weight_sentence": weight_sentence(str(cfg.fusion.name), fusion.describe_weight, view),
+            "weight_sentence": weight_sentence(scheme, fusion.describe_weight, view),
         }
     server = TeachingServer(
         session,

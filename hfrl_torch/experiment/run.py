@@ -35,6 +35,7 @@ from tqdm import tqdm
 
 from hfrl_torch.common.checkpoint import LAST, save_checkpoint
 from hfrl_torch.common.logger import Logger, flatten_config, make_logger, markdown_table
+from hfrl_torch.interactive.live import LiveTeaching
 
 __all__ = ["Callback", "Interrupt", "Learner", "Point", "RunFiles", "learn"]
 
@@ -167,15 +168,32 @@ class Learner(ABC):
         """Whether a checkpoint is due after the chunk just learned (default: after every chunk)."""
         return True
 
+    teaching: LiveTeaching | None = None
+    """The page's server and session when a person teaches from the browser (``trainer=interactive``)."""
+
     @property
     def stop_requested(self) -> bool:
         """Whether the run should end after this chunk although its budget is not spent (the browser
         trainer's "Finish and save"); it then ends as a finished run, with a checkpoint."""
-        return False
+        return self.teaching is not None and self.teaching.finish_requested
 
-    def interrupted(self) -> None:  # noqa: B027  (an optional hook)
+    def interrupted(self) -> None:
         """Ctrl-C or SIGTERM asked the run to stop after the chunk in progress: a learner may end the chunk
-        sooner. Called from the signal handler: set flags only."""
+        sooner (the browser trainer stops pacing its last steps). Called from the signal handler: set flags
+        only."""
+        if self.teaching is not None:
+            self.teaching.session.request_stop()
+
+    @property
+    def ending(self) -> bool:
+        """Whether the page asked the run to end (Finish and save, or Ctrl-C): a chunk ends at once."""
+        return self.teaching is not None and self.teaching.session.ending is not None
+
+    def end_teaching(self, budget: str, more: float) -> None:
+        """Tell the page why the run ends and where it is saved (``budget`` and ``more``: the setting and
+        value that continue a finished run, e.g. ``agent.frames``, 200000); call it from ``close``."""
+        if self.teaching is not None:
+            self.teaching.end(self.done, self.run_dir, budget, more)
 
     def purge_steps(self) -> dict[str, int]:
         """TensorBoard step, per axis, after which a resumed run's events are dropped (the checkpoint's)."""

@@ -1,6 +1,6 @@
 """``train.py domain=gym trainer=replay trainer.log=<feedback.jsonl>``: a gym run's feedback log given again
-through the one replay (``trainers.replay.ReplayTrainer``, matched by board, episode and step), and a log
-that cannot be read refused in one line before the run (issue 42)."""
+through the one replay (``trainers.replay.ReplayTrainer``, matched by board, episode and step) to DQN, PPO and
+TAMER alone, and a log that cannot be read refused in one line before the run (issue 42)."""
 
 from __future__ import annotations
 
@@ -53,6 +53,43 @@ def test_a_replayed_gym_run_receives_exactly_the_logged_events(run_learner, tmp_
         r["eval/greedy_return_mean"] for r in first.history
     ]
     assert again["feedback_events"] == done["feedback_events"]
+
+
+@pytest.mark.parametrize(
+    "learner",
+    [
+        ("agent=tamer", "agent.boards=4"),
+        (
+            "agent=ppo",
+            "fusion=linear",
+            "fusion.weight=1.0",
+            "agent.boards=4",
+            "agent.steps_per_batch=8",
+            "agent.minibatch_size=16",
+        ),
+    ],
+    ids=["tamer", "ppo"],
+)
+def test_tamer_and_ppo_replay_a_gym_runs_log_and_learn_the_same(run_learner, tmp_path, one_thread, learner):
+    """TAMER alone and PPO fused take a replayed log as DQN does: the same events on the same steps, so H^
+    (and the policy) learn the same, point for point."""
+    task = ("domain=gym", "domain.env_id=CartPole-v1", "seed=3", *learner)
+    tiny = ("agent.frames=256", "agent.eval_every=128", "agent.eval_episodes=2", "human.replay_every=2")
+    first, _ = run_learner(tmp_path / "oracle", *task, *tiny, *ORACLE, "trainer.frequency=0.5")
+    log = tmp_path / "oracle" / "feedback.jsonl"
+    recorded = load_feedback_log(log)
+    assert len(recorded) > 50
+
+    second, _ = run_learner(tmp_path / "replay", *task, *tiny, "trainer=replay", f"trainer.log={log}")
+    replayed = load_feedback_log(tmp_path / "replay" / "feedback.jsonl")
+    assert sorted(map(_key, replayed)) == sorted(map(_key, recorded))
+    assert {e.source for e in replayed} == {"replay"}
+    assert second.events == first.events > 0 and second.positive == first.positive
+    for a, b in zip(first.human.model.parameters(), second.human.model.parameters(), strict=True):
+        assert torch.equal(a, b)
+    assert [r["eval/greedy_return_mean"] for r in second.history] == [
+        r["eval/greedy_return_mean"] for r in first.history
+    ]
 
 
 def _log_lines() -> list[str]:

@@ -193,7 +193,8 @@ def test_a_tamer_run_teaches_with_a_trained_run_as_its_reference(run_learner, tm
     [
         (("trainer=none",), "TAMER alone learns only from a trainer's feedback; choose trainer=oracle"),
         ((SCRIPTED, "fusion=linear", "trainer=oracle"), "TAMER acts on H^ alone; use fusion=none"),
-        (("trainer=replay",), "trainer=replay is not available for domain=gym yet; allowed: oracle"),
+        (("trainer=interactive",), "agent=tamer (trainer=interactive picks fusion=linear unless told)"),
+        (("trainer=replay",), "trainer=replay needs trainer.log=<feedback log file>"),
         ((SCRIPTED, "human=linear"), "human.name='linear' is invalid"),
         (("trainer.reference=examples.nope:reference",), "does not import"),
         (("trainer.reference=tests.experiment.gym_task_helpers:wrong_shape",), "of shape []"),

@@ -1,7 +1,7 @@
-"""The browser trainer on any Gymnasium task (``domain=gym agent=dqn trainer=interactive``), with a scripted
-page: the frames are the task's own (PNG), every acknowledged press is in the feedback log exactly once (filed
-under the step the page was told), pause and finish behave as on the other domains, and a task that cannot
-show frames is one line before the run."""
+"""The browser trainer on any Gymnasium task (``domain=gym agent=dqn|ppo|tamer trainer=interactive``), with a
+scripted page: the frames are the task's own (PNG), every acknowledged press is in the feedback log exactly
+once (filed under the step the page was told), pause and finish behave as on the other domains, and a task
+that cannot show frames is one line before the run."""
 
 from __future__ import annotations
 
@@ -24,25 +24,25 @@ from tensordict import TensorDict
 from hfrl_torch import keys
 from hfrl_torch.common.checkpoint import load_checkpoint
 from hfrl_torch.common.errors import ConfigError
-from hfrl_torch.feedback.log import load_feedback_log
+from hfrl_torch.feedback.events import FeedbackEvent
+from hfrl_torch.feedback.log import FeedbackLog, load_feedback_log
 from hfrl_torch.interactive.gym_live import GymWatcher, png_data_url
 from hfrl_torch.interactive.journal import JOURNAL_NAME, read_journal
 from hfrl_torch.interactive.session import TeachingSession
 
 CARTPOLE = ("domain=gym", "domain.env_id=CartPole-v1", "agent=dqn")
 HELPERS = "tests.interactive.gym_live_helpers"
-LIVE = (
+PAGE = (
     "trainer=interactive",
     "trainer.port=0",
     "trainer.wait_for_page_s=60",
     "trainer.actions_per_s=20",
     "agent.boards=2",
-    "agent.steps_per_batch=4",
-    "agent.learn_after=32",
     "agent.frames=100000",  # the page finishes the run
     "agent.eval_every=100000",
     "agent.eval_episodes=2",
 )
+LIVE = (*PAGE, "agent.steps_per_batch=4", "agent.learn_after=32")  # DQN's
 FILED = re.compile(r"action [01] at step (\d+) of episode (\d+)")
 OTHER_DOMAINS = re.compile(r"tetris|placement|line|keeper|taker|ball|column|practice round", re.IGNORECASE)
 
@@ -111,6 +111,7 @@ def _taught(
     checkpoint: Any = None,
     task: tuple[str, ...] = CARTPOLE,
     before: Any = None,
+    live: tuple[str, ...] = LIVE,
 ) -> tuple[Any, Any, dict]:
     """The learner run in ``run_dir`` on ``task`` with a scripted page (:func:`_teach`) in another thread;
     ``before(learner)`` is called first."""
@@ -131,7 +132,7 @@ def _taught(
         threads.append(threading.Thread(target=teach, daemon=True))
         threads[-1].start()
 
-    learner, final = run_learner(run_dir, *task, *LIVE, checkpoint=checkpoint, prepare=page)
+    learner, final = run_learner(run_dir, *task, *live, checkpoint=checkpoint, prepare=page)
     for thread in threads:  # the run may end before the page has read its last message
         thread.join(timeout=60)
     assert "failed" not in said, said.get("failed")
@@ -190,6 +191,65 @@ def test_each_acknowledged_press_on_cartpole_is_logged_once_under_the_step_it_wa
     events = [e for e in load_feedback_log(tmp_path / "feedback.jsonl") if e.session.endswith("/browser")]
     assert [e.seq for e in events] == list(range(15)) and more["end"]["given"] == 1
     assert events[-1].episode == more["acks"][0]["episode"] >= episodes and again.watcher.episode >= episodes
+
+
+def _channel(learner: Any) -> Any:
+    """The channel the learner's feedback waits in (TAMER's own, else the feedback transform's)."""
+    return learner.channel if learner.agent == "tamer" else learner.feedback_transform.channel
+
+
+@pytest.mark.parametrize(
+    ("learner", "sentence"),
+    [
+        (("agent=tamer", "fusion=none"), "The agent acts on what it learned from your presses alone"),
+        (("agent=ppo", "fusion=linear", "agent.steps_per_batch=4", "agent.minibatch_size=8"), "The weight w"),
+    ],
+    ids=["tamer", "ppo"],
+)
+def test_tamer_and_ppo_are_taught_from_the_page_and_a_resumed_run_learns_the_presses_it_had_not(
+    run_learner, tmp_path, one_thread, learner, sentence
+) -> None:
+    """TAMER alone and PPO fused on CartPole from the page: every acknowledged press logged once, in order,
+    H^ learning from them, the page's weight sentence true of the learner; resumed, the presses logged after
+    the checkpoint (the queue's last, logged at the stop, and one as a killed run's journal recovery logs
+    it) go to the resumed learner's channel, to be learned once, and the numbering goes on."""
+    task = ("domain=gym", "domain.env_id=CartPole-v1", *learner)
+    first, final, said = _taught(run_learner, tmp_path, 14, task=task, live=PAGE)
+    acks = said["acks"]
+    assert final is not None and said["errors"] == [] and len(acks) == 14
+    assert said["end"]["reason"] == "finished_by_you" and said["end"]["given"] == 14
+    events = [e for e in load_feedback_log(tmp_path / "feedback.jsonl") if e.session.endswith("/browser")]
+    assert [e.value for e in events] == [float(a["value"]) for a in acks]
+    assert [(e.episode, e.step) for e in events] == [(a["episode"], a["step"]) for a in acks]
+    assert [e.seq for e in events] == list(range(14))
+    assert said["config"]["weight_sentence"].startswith(sentence), said["config"]["weight_sentence"]
+    assert first.events >= 1 and first.human.updates >= 1  # H^ learned from the presses the loop drained
+
+    ckpt = load_checkpoint(tmp_path)
+    state = ckpt["state"]
+    saved = state["channel"] if first.agent == "tamer" else state["feedback"]["channel"]
+    waiting = 0
+    if saved is not None:
+        channel = type(_channel(first))(first.boards)
+        channel.load_state_dict(saved)
+        waiting = channel.pending
+    session = events[0].session
+    seen = state["log_seq"].get(session, -1)
+    with FeedbackLog(tmp_path / "feedback.jsonl", session=tmp_path.name) as log:  # recovered from a journal
+        log.append(FeedbackEvent(0.0, 1.0, "human:browser", step=0, episode=0, session=session))
+    queued: dict[str, int] = {}
+    _, _, more = _taught(
+        run_learner,
+        tmp_path,
+        1,
+        checkpoint=ckpt,
+        task=task,
+        live=PAGE,
+        before=lambda learner: queued.update(n=_channel(learner).pending),
+    )
+    assert queued["n"] == waiting + (14 - seen), (queued, waiting, seen)
+    events = [e for e in load_feedback_log(tmp_path / "feedback.jsonl") if e.session.endswith("/browser")]
+    assert [e.seq for e in events] == list(range(16)) and more["end"]["given"] == 1
 
 
 def test_an_atari_game_taught_live_logs_each_press_and_its_cnn_h_hat_learns_from_them(

@@ -63,7 +63,7 @@ class CollectorLearner(FramesLearner):
     the checkpoint's common state, the fusion's payload and the report. Their ``__init__`` sets the counts
     (``frames``, ``points``, ``episodes``, ``events``, ``positive``, ``trainer_seconds``,
     ``weights_played``), ``taught``, ``fusion``, ``reward_fusion``, ``saves`` and, taught, ``human``,
-    ``feedback_transform`` and ``log``."""
+    ``feedback_transform``, ``log`` and, when a person teaches from the browser, ``teaching``."""
 
     score_key: ClassVar[str] = ""  # the greedy evaluation's main metric
     score_unit: ClassVar[str] = ""
@@ -72,6 +72,17 @@ class CollectorLearner(FramesLearner):
     @property
     def eval_episodes(self) -> int:
         return int(self.cfg.agent.eval_episodes)
+
+    # ------------------------------------------------------------ a person's page
+
+    @property
+    def who(self) -> str:
+        """Who gives the feedback, for the run's TensorBoard text."""
+        if self.teaching is not None:
+            return "human:browser: a PERSON teaching in the browser (trainer=interactive), watching board 0"
+        label = TRAINER_LABELS.get(self.cfg.trainer.name, self.cfg.trainer.name)
+        leaves = self.feedback_transform.departure.describe() if self.feedback_transform is not None else ""
+        return f"{label} (a simulated or replayed trainer, not a person), one per board; {leaves}"
 
     def save_due(self) -> bool:
         return self.saves.due(SAVE_EVERY_S)
@@ -138,7 +149,9 @@ class CollectorLearner(FramesLearner):
         return state
 
     def load_common_state(self, state: dict[str, Any]) -> None:
-        """Resume what :meth:`common_state` saved (the log's events after it come again, once)."""
+        """Resume what :meth:`common_state` saved: a simulated trainer's or a replay's events after it come
+        again and are logged once; a person's presses logged after it go to the channel, to be learned once
+        (they watch board 0)."""
         self.frames, self.points, self.episodes = (int(state[k]) for k in ("frames", "points", "episodes"))
         self.events, self.positive = (int(v) for v in state["events"])
         self.trainer_seconds = float(state["trainer_seconds"])
@@ -148,7 +161,10 @@ class CollectorLearner(FramesLearner):
         if self.taught:
             self.human.load_state_dict(state["human"])
             self.feedback_transform.set_extra_state(state["feedback"])
-            self.log.resume(state["log_seq"], regenerated=True)
+            person = self.cfg.trainer.name == "interactive"
+            unseen = self.log.resume(state["log_seq"], regenerated=not person)
+            if unseen:  # a person's presses logged after the checkpoint (or recovered from the journal)
+                self.feedback_transform.put_events([unseen, *([[]] * (self.boards - 1))])
 
     def fusion_payload(self) -> dict[str, Any] | None:
         """How ``evaluate.py`` fuses the saved H^ with the agent's values (Q, or the policy's logits; None:
@@ -335,24 +351,10 @@ class DeepQLearner(CollectorLearner):
     def description(self) -> str:
         return f"DQN {self.domain}" + (f" + {self.cfg.fusion.name}" if self.taught else "")
 
-    @property
-    def who(self) -> str:
-        """Who gives the feedback, for the run's TensorBoard text."""
-        if self.teaching is not None:
-            return "human:browser: a PERSON teaching in the browser (trainer=interactive), watching board 0"
-        label = TRAINER_LABELS.get(self.cfg.trainer.name, self.cfg.trainer.name)
-        leaves = self.feedback_transform.departure.describe() if self.feedback_transform is not None else ""
-        return f"{label} (a simulated or replayed trainer, not a person), one per board; {leaves}"
-
     def start(self, logger: Logger) -> None:
         self.logger = logger
         if self.taught and not self.resumed:
             logger.text("trainer", f"{self.who}; fusion={self.cfg.fusion.name}, human={self.cfg.human.name}")
-
-    @property
-    def ending(self) -> bool:
-        """Whether the page asked the run to end (Finish and save, or Ctrl-C): the chunk ends at once."""
-        return self.teaching is not None and self.teaching.session.ending is not None
 
     def advance(self) -> list[Point]:
         if self.points == 0 and not self.resumed and self.frames == 0:
@@ -419,17 +421,8 @@ class DeepQLearner(CollectorLearner):
 
     # ------------------------------------------------------------------ results
 
-    @property
-    def stop_requested(self) -> bool:
-        return self.teaching is not None and self.teaching.finish_requested
-
-    def interrupted(self) -> None:
-        if self.teaching is not None:  # the browser trainer: the chunk's last steps are not paced
-            self.teaching.session.request_stop()
-
     def close(self) -> None:
         self.collector.shutdown()
-        if self.teaching is not None:
-            self.teaching.end(self.done, self.run_dir, "agent.frames", 2 * self.frames_total)
+        self.end_teaching("agent.frames", 2 * self.frames_total)
         if self.log is not None:
             self.log.close()

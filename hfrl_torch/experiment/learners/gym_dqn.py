@@ -38,22 +38,18 @@ from hfrl_torch.experiment.factories import (
     FeedbackWiring,
     make_deep_tamer,
     make_dqn,
-    make_feedback_wiring,
     make_gym_task,
     make_gym_trainer,
 )
 from hfrl_torch.experiment.learners.deep_q import DeepQLearner
+from hfrl_torch.experiment.learners.gym_page import SCORE_KEY, GymPage
 from hfrl_torch.experiment.run import Point
 from hfrl_torch.feedback.log import FeedbackLog
-from hfrl_torch.interactive.gym_live import BrowserGymTrainer, GymWatcher
-from hfrl_torch.interactive.messages import MAX_SPEED, MIN_SPEED
 from hfrl_torch.models.cnn import ActionCNN
 from hfrl_torch.models.mlp import ActionMLP
 from hfrl_torch.trainers import Trainer
 from hfrl_torch.trainers.departure import Departure
 from hfrl_torch.trainers.transform import HumanFeedback
-
-SCORE_KEY = "eval/greedy_return"  # the points of every domain=gym learner
 
 __all__ = [
     "GymDQN",
@@ -119,7 +115,7 @@ class GymTaskParts:
         return input_scale(self.spaces)
 
 
-class GymDQN(GymTaskParts, DeepQLearner):
+class GymDQN(GymTaskParts, GymPage, DeepQLearner):
     """DQN over the observation of any discrete-action task on ``agent.boards`` copies (module docstring)."""
 
     domain = "gym"
@@ -132,58 +128,22 @@ class GymDQN(GymTaskParts, DeepQLearner):
 
     def __init__(self, cfg: DictConfig, run_dir: Path, checkpoint: dict[str, Any] | None = None) -> None:
         super().__init__(cfg, run_dir, checkpoint)
-        if checkpoint is not None and self.watcher is not None:
-            self.watcher.set_extra_state(checkpoint["state"].get("page", {"episode": 0}))
+        if checkpoint is not None:
+            self.load_page_state(checkpoint["state"])
 
     human_in_keys: ClassVar[list[Any]] = [keys.OBSERVATION]
     score_key = SCORE_KEY
     score_unit = "return per episode"
     episode_word = "episode"
 
-    @property
-    def seconds_per_step(self) -> float:
-        """The simulated clock's time per env step (``domain.seconds_per_step``), which H^ credits on."""
-        return float(self.cfg.domain.seconds_per_step)
-
-    @cached_property
-    def watcher(self) -> GymWatcher | None:
-        """What shows board 0 on a person's page and paces it (None: nobody teaches in the browser)."""
-        if self.teaching is None:
-            return None
-        steps = -(-self.frames_total // self.boards)
-        return GymWatcher(
-            self.teaching.session, self.seconds_per_step, steps, lambda: self.fusion.weight()[0]
-        )
-
     def make_wiring(self, run_dir: Path) -> FeedbackWiring:
-        """The feedback wiring, with the page for ``trainer=interactive``: it starts at one step per
-        ``domain.seconds_per_step`` (within the page's speeds), so that the page and the simulated clock keep
-        pace, and names the task and its curve's axes."""
-        e = self.cfg.agent.eval_episodes
-        info = {
-            "task": self.task.label,
-            "curve_x": f"env steps, all {self.boards} copies of the task",
-            "curve_y": "greedy return per episode",
-            "curve_note": f"Return of the greedy policy, mean of {e} test episodes",
-        }
-        return make_feedback_wiring(
-            self.cfg,
-            run_dir,
-            self.fusion,
-            self.make_trainer,
-            lambda session, log: BrowserGymTrainer(session, log),
-            view="gym",
-            fsync_simulated=False,
-            speed=min(max(1.0 / self.seconds_per_step, MIN_SPEED), MAX_SPEED),
-            info=info,
-        )
+        return self.page_wiring(run_dir, self.make_trainer)
 
     def make_env(self, boards: int, seed: int) -> EnvBase:
-        first = None if self.watcher is None else self.watcher.watch(self.task.make_watched())
-        return make_gym_batch(self.task, boards, seed, first=first)
+        return self.page_env(boards, seed)
 
     def domain_transforms(self) -> list[Transform]:
-        return [StepCounter(), RewardSum(), *filter(None, [self.watcher])]
+        return self.page_transforms()
 
     def make_dqn(self) -> DeepQ:
         q = observation_net(self.spaces, list(self.cfg.agent.cells), self.scale)
@@ -206,21 +166,16 @@ class GymDQN(GymTaskParts, DeepQLearner):
 
     def start(self, logger: Logger) -> None:
         super().start(logger)
-        if self.teaching is not None:  # a resumed run waits too: nobody teaches it until the page opens
-            self.teaching.announce(float(self.cfg.trainer.wait_for_page_s), "learning from the task alone")
+        self.announce_page()
 
     def advance(self) -> list[Point]:
         points = super().advance()
-        if self.watcher is not None:  # the page's curve: each point with the share of its steps taught
-            share = self.watcher.taught_share()
-            for p in points:
-                self.teaching.session.add_point(p.step, p.record[f"{self.score_key}_mean"], share)
+        self.show_points(points)
         return points
 
     def checkpoint(self) -> dict[str, Any]:
         out = super().checkpoint()
-        if self.watcher is not None:
-            out["state"]["page"] = self.watcher.get_extra_state()
+        out["state"].update(self.page_state())
         return out
 
     def episode_performance(self, nxt: TensorDictBase) -> torch.Tensor:

@@ -6,9 +6,11 @@ by :class:`~hfrl_torch.agents.ppo.PPO` (TorchRL's ``ClipPPOLoss`` and ``GAE``) o
 ``Collector`` draws from ``agent.boards`` copies of the task, wrapped as
 ``TransformedEnv(env, Compose(StepCounter, RewardSum, <trainer's feedback>, FeedbackFusion(fusion)))``.
 With a trainer, H^ is Deep TAMER's MLP on the observation (``human=mlp``), taught by the simulated oracle
-against ``trainer.reference``; every step of a batch, in time order, H^ records the decision and learns
-from the feedback delivered, and each ended episode ends the fusion's episode (the trust factor of eq. 4.4,
-the adaptive bandit) with its return above ``domain.min_return``; then PPO learns from the batch.
+against ``trainer.reference`` (or the value proxy, a replayed log, or a person in the browser watching
+board 0: ``trainer=interactive``, ``gym_page``); every step of a batch, in time order, H^ records the
+decision and learns from the feedback delivered, and each ended episode ends the fusion's episode (the trust
+factor of eq. 4.4, the adaptive bandit) with its return above ``domain.min_return``; then PPO learns from
+the batch.
 
 How H^ meets PPO. The project's feedback spec (``shared/specs/feedback.md``, "Combining H^ with the
 environment") fuses R, "the environment-trained estimate", with H^ at the choice, a = argmax_a f(R, H), and
@@ -47,7 +49,7 @@ from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 from torchrl.collectors import Collector
-from torchrl.envs import Compose, RewardSum, StepCounter, TransformedEnv
+from torchrl.envs import Compose, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from hfrl_torch import keys
@@ -56,17 +58,15 @@ from hfrl_torch.agents.policies import export_policy
 from hfrl_torch.agents.ppo import PPO
 from hfrl_torch.common.logger import Logger
 from hfrl_torch.common.seeding import component_seed
-from hfrl_torch.envs.gym_task import make_gym_batch
 from hfrl_torch.experiment.checks import check_gym_ppo
 from hfrl_torch.experiment.factories import (
     make_deep_tamer,
-    make_feedback_wiring,
     make_fusion,
     make_gym_trainer,
 )
 from hfrl_torch.experiment.learners.deep_q import CollectorLearner
 from hfrl_torch.experiment.learners.gym_dqn import SCORE_KEY, GymTaskParts, greedy_returns, observation_net
-from hfrl_torch.experiment.learners.tetris_games import TRAINER_LABELS
+from hfrl_torch.experiment.learners.gym_page import GymPage
 from hfrl_torch.experiment.run import Point, WallClockSaves
 from hfrl_torch.fusion.fusion import Fusion
 from hfrl_torch.fusion.transform import FeedbackFusion
@@ -79,7 +79,7 @@ def _observation(td: TensorDictBase) -> torch.Tensor:
     return td.get(keys.OBSERVATION)
 
 
-class GymPPO(GymTaskParts, CollectorLearner):
+class GymPPO(GymTaskParts, GymPage, CollectorLearner):
     """PPO over the observation of any discrete-action task on ``agent.boards`` copies (module docstring)."""
 
     domain = "gym"
@@ -125,26 +125,18 @@ class GymPPO(GymTaskParts, CollectorLearner):
         if self.taught:
             model = observation_net(self.spaces, list(cfg.human.cells), self.scale)
             self.human = make_deep_tamer(cfg, model, _observation, self.boards)
-            wiring = make_feedback_wiring(
-                cfg,
-                run_dir,
-                self.fusion,
-                lambda log: make_gym_trainer(cfg, self.spaces.actions, log),
-                fsync_simulated=False,
-            )
-            self.log = wiring.log
-            seconds = float(cfg.domain.seconds_per_step)
+            wiring = self.page_wiring(run_dir, lambda log: make_gym_trainer(cfg, self.spaces.actions, log))
+            self.log, self.teaching = wiring.log, wiring.teaching
+            departure = wiring.departure
             self.feedback_transform = HumanFeedback(
-                wiring.trainer, seconds, score_key=keys.EPISODE_REWARD, departure=wiring.departure
+                wiring.trainer, self.seconds_per_step, score_key=keys.EPISODE_REWARD, departure=departure
             )
             modules = [HumanValuesModule(self.human, [keys.OBSERVATION]), self.ppo.actor, ChosenEstimate()]
         self.policy = TensorDictSequential(*modules)
         self.reward_fusion = FeedbackFusion(self.fusion, estimate_key=keys.HUMAN_REWARD_ESTIMATE)
-        parts = [StepCounter(), RewardSum(), *filter(None, [self.feedback_transform]), self.reward_fusion]
+        parts = [*self.page_transforms(), *filter(None, [self.feedback_transform]), self.reward_fusion]
         self.env = TransformedEnv(
-            make_gym_batch(self.task, self.boards, component_seed(self.seed, "env")),
-            Compose(*parts),
-            auto_unwrap=True,
+            self.page_env(self.boards, component_seed(self.seed, "env")), Compose(*parts), auto_unwrap=True
         )
         self.frames = self.points = self.episodes = self.events = self.positive = 0
         self.trainer_seconds = 0.0
@@ -174,20 +166,20 @@ class GymPPO(GymTaskParts, CollectorLearner):
 
     def start(self, logger: Logger) -> None:
         if self.taught and not self.resumed:
-            logger.text(
-                "trainer",
-                f"{TRAINER_LABELS.get(self.cfg.trainer.name, self.cfg.trainer.name)} (a simulated trainer, "
-                f"not a person), one per board, {self.feedback_transform.departure.describe()}; "
-                f"fusion={self.cfg.fusion.name}, human={self.cfg.human.name}",
-            )
+            logger.text("trainer", f"{self.who}; fusion={self.cfg.fusion.name}, human={self.cfg.human.name}")
+        self.announce_page()
 
     def advance(self) -> list[Point]:
         if self.points == 0 and not self.resumed and self.frames == 0:
-            return [self._point()]  # the untrained policy: where every curve starts
-        goal = min(self.frames_total, self.points * self.eval_every)
-        while self.frames < goal:
-            self._learn_batch(next(self.batches))
-        return [self._point()]
+            points = [self._point()]  # the untrained policy: where every curve starts
+        else:
+            goal = min(self.frames_total, self.points * self.eval_every)
+            while self.frames < goal and not self.ending:
+                self._learn_batch(next(self.batches))
+            # ended early (Finish and save, Ctrl-C): the checkpoint keeps the frames, a resumed run goes on
+            points = [self._point()] if self.frames >= goal else []
+        self.show_points(points)
+        return points
 
     def _learn_batch(self, batch: TensorDictBase) -> None:
         """One collected batch [B, T]: H^ and the fusion's episodes in time order, then PPO's epochs."""
@@ -199,7 +191,8 @@ class GymPPO(GymTaskParts, CollectorLearner):
                 self.events += int(self.human.learn(nxt).sum())
                 self.positive += int((nxt[keys.FEEDBACK_MASK] & (nxt[keys.FEEDBACK] > 0)).sum())
                 if self.feedback_transform.present_at(self.episodes, step[keys.CLOCK]):
-                    self.trainer_seconds += self.boards * float(self.cfg.domain.seconds_per_step)
+                    watched = 1 if self.teaching is not None else self.boards  # a person watches board 0
+                    self.trainer_seconds += watched * self.seconds_per_step
             done = nxt[keys.DONE].reshape(-1)
             for ret in nxt[keys.EPISODE_REWARD].reshape(-1)[done].tolist():
                 if self.taught:
@@ -228,13 +221,14 @@ class GymPPO(GymTaskParts, CollectorLearner):
 
     def checkpoint(self) -> dict[str, Any]:
         return {
-            "state": {**self.common_state(), "ppo": self.ppo.state_dict()},
+            "state": {**self.common_state(), "ppo": self.ppo.state_dict(), **self.page_state()},
             "policy": self.policy_payload(),
         }
 
     def _load(self, state: dict[str, Any]) -> None:
         self.ppo.load_state_dict(state["ppo"])
         self.load_common_state(state)
+        self.load_page_state(state)
 
     def policy_payload(self) -> dict[str, Any]:
         """What ``evaluate.py`` plays: the policy network greedily (and, with a trainer, fused with H^ by the
@@ -258,5 +252,6 @@ class GymPPO(GymTaskParts, CollectorLearner):
 
     def close(self) -> None:
         self.collector.shutdown()
+        self.end_teaching("agent.frames", 2 * self.frames_total)
         if self.log is not None:
             self.log.close()

@@ -24,6 +24,7 @@ says so.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -31,7 +32,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictSequential
-from torchrl.envs import EnvBase
+from torchrl.envs import Compose, EnvBase, TransformedEnv
 
 from hfrl_torch import keys
 from hfrl_torch.agents.dqn import HumanValuesModule
@@ -42,7 +43,6 @@ from hfrl_torch.common.stats import summarize
 from hfrl_torch.experiment.checks import check_gym_tamer
 from hfrl_torch.experiment.factories import (
     make_deep_tamer,
-    make_feedback_wiring,
     make_fusion,
     make_gym_trainer,
 )
@@ -50,10 +50,10 @@ from hfrl_torch.experiment.learners.gym_dqn import (
     SCORE_KEY,
     GymTaskParts,
     greedy_returns,
-    gym_env,
     observation,
     observation_net,
 )
+from hfrl_torch.experiment.learners.gym_page import GymPage
 from hfrl_torch.experiment.learners.tetris_games import TRAINER_LABELS
 from hfrl_torch.experiment.run import FramesLearner, Point
 from hfrl_torch.fusion.transform import FusionModule
@@ -63,7 +63,7 @@ __all__ = ["GymTamer"]
 DECISION_KEYS = (keys.HUMAN_VALUES, keys.FUSED_VALUES, keys.FUSION_WEIGHT)  # the policy's, not the env's
 
 
-class GymTamer(GymTaskParts, FramesLearner):
+class GymTamer(GymTaskParts, GymPage, FramesLearner):
     """Deep TAMER alone on ``agent.boards`` copies of a task, taught by the simulated oracle (module
     docstring)."""
 
@@ -81,22 +81,16 @@ class GymTamer(GymTaskParts, FramesLearner):
         torch.manual_seed(component_seed(self.seed, "agent"))  # H^'s initialisation
         self.boards, self.frames_total = int(a.boards), int(a.frames)
         self.eval_every, self.eval_episodes = int(a.eval_every), int(a.eval_episodes)
-        self.seconds_per_step = float(cfg.domain.seconds_per_step)
         model = observation_net(self.spaces, list(cfg.human.cells), self.scale)
         self.human = make_deep_tamer(cfg, model, observation, self.boards)
         self.fusion = make_fusion(cfg, type(self), 1, option="human_only")
         self.policy = TensorDictSequential(
             HumanValuesModule(self.human, [keys.OBSERVATION]), FusionModule(self.fusion, "greedy")
         )
-        wiring = make_feedback_wiring(
-            cfg,
-            run_dir,
-            self.fusion,
-            lambda log: make_gym_trainer(cfg, self.spaces.actions, log),
-            boards=self.boards,
-            fsync_simulated=False,
+        wiring = self.page_wiring(
+            run_dir, lambda log: make_gym_trainer(cfg, self.spaces.actions, log), boards=self.boards
         )
-        self.log, self.trainer = wiring.log, wiring.trainer
+        self.log, self.trainer, self.teaching = wiring.log, wiring.trainer, wiring.teaching
         self.channel, self.departure = wiring.channel, wiring.departure
         self.steps = 0  # steps of every board (frames = boards x steps)
         self.points = 0
@@ -107,15 +101,22 @@ class GymTamer(GymTaskParts, FramesLearner):
         self.left_at: int | None = None  # the frame at which the trainer left
         self.finished: list[float] = []  # returns of the training episodes ended since the last point
         self.played: list[torch.Tensor] = []  # every step's actions [B] since the task was seeded
-        self.restarts = 0  # resumes whose task did not replay the same (its episodes restarted)
-        self.env, self.td = self._seeded_env()
+        self.restarts = 0  # resumes whose episodes restarted (a person's run, or a task that did not replay)
         if checkpoint is not None:
             self._load(checkpoint["state"])
+        else:
+            self.env, self.td = self._seeded_env()
 
     def _seeded_env(self) -> tuple[EnvBase, TensorDictBase]:
-        """The training boards, seeded afresh (a new seed after each restart), and their first observation."""
-        env = gym_env(self.task, self.boards, component_seed(self.seed, "env", self.restarts))
+        """The training boards, seeded afresh (a new seed after each restart), board 0 shown on a person's
+        page, and their first observation."""
+        seed = component_seed(self.seed, "env", self.restarts)
+        parts = Compose(*self.page_transforms())
+        env = TransformedEnv(self.page_env(self.boards, seed), parts, auto_unwrap=True)
         return env, env.reset()
+
+    def page_weight(self) -> Callable[[], float] | None:
+        return None  # TAMER acts on H^ alone: no weight to show
 
     # ---------------------------------------------------------------- the loop
 
@@ -142,25 +143,34 @@ class GymTamer(GymTaskParts, FramesLearner):
         boards, or its simulated minutes."""
         return self.departure.present_one(self.episodes, self.clock)
 
+    @property
+    def who(self) -> str:
+        """Who gives the feedback, for the run's TensorBoard text."""
+        t = self.cfg.trainer
+        if self.teaching is not None:
+            return "human:browser: a PERSON teaching in the browser (trainer=interactive), watching board 0"
+        label = TRAINER_LABELS.get(t.name, t.name)
+        judged = f" against trainer.reference={t.reference}" if t.name != "replay" else f" of {t.log}"
+        return f"{label} (a simulated or replayed trainer, not a person){judged}, one per board"
+
     def start(self, logger: Logger) -> None:
-        if self.restarts and self.resumed:
+        if self.restarts and self.resumed and self.teaching is None:
             logger.text("resume", "the task did not replay the same actions the same way: episodes restarted")
-        if self.resumed:
-            return
-        logger.text(
-            "trainer",
-            f"{TRAINER_LABELS.get(self.cfg.trainer.name, self.cfg.trainer.name)} (a simulated trainer, not "
-            f"a person) against trainer.reference={self.cfg.trainer.reference}, one per board; "
-            f"{self.departure.describe()}; human={self.cfg.human.name}",
-        )
+        if not self.resumed:
+            logger.text("trainer", f"{self.who}; {self.departure.describe()}; human={self.cfg.human.name}")
+        self.announce_page()
 
     def advance(self) -> list[Point]:
         if self.points == 0 and self.frames == 0:
-            return [self._point()]  # the untrained policy: where every curve starts
-        goal = min(self.frames_total, self.points * self.eval_every)
-        while self.frames < goal:
-            self._step()
-        return [self._point()]
+            points = [self._point()]  # the untrained policy: where every curve starts
+        else:
+            goal = min(self.frames_total, self.points * self.eval_every)
+            while self.frames < goal and not self.ending:
+                self._step()
+            # ended early (Finish and save, Ctrl-C): the checkpoint keeps the steps, a resumed run goes on
+            points = [self._point()] if self.frames >= goal else []
+        self.show_points(points)
+        return points
 
     def _step(self) -> None:
         """One step of every board: H^ learns from what is due, acts greedily, and is judged."""
@@ -178,9 +188,10 @@ class GymTamer(GymTaskParts, FramesLearner):
         if present:
             self.channel.put_events(self.trainer.give(td, action, now, self.games))
             self.human.record(td, action, now)
-            self.trainer_seconds += self.boards * self.seconds_per_step
+            self.trainer_seconds += (1 if self.teaching is not None else self.boards) * self.seconds_per_step
         self.played.append(action.reshape(-1).to(torch.int32))
-        td, self.td = self.env.step_and_maybe_reset(td.exclude(*DECISION_KEYS))
+        clock = torch.full((self.boards,), now, dtype=torch.float64)  # when the action is taken: the page's
+        td, self.td = self.env.step_and_maybe_reset(td.exclude(*DECISION_KEYS).set(keys.CLOCK, clock))
         self.steps += 1
         nxt = td.get("next")
         done = nxt.get(keys.DONE).reshape(-1)
@@ -230,6 +241,7 @@ class GymTamer(GymTaskParts, FramesLearner):
             "channel": self.channel.state_dict(),
             "log_seq": self.log.last_seq,
             "rng": torch.get_rng_state(),
+            **self.page_state(),
         }
         return {"state": state, "policy": self.policy_payload()}
 
@@ -245,16 +257,22 @@ class GymTamer(GymTaskParts, FramesLearner):
         self.fusion.load_state_dict(state["fusion"])
         self.trainer.load_state_dict(state["trainer"])
         self.channel.load_state_dict(state["channel"])
-        self.log.resume(state["log_seq"], regenerated=True)  # the events after it come again, once
+        person = self.teaching is not None
+        unseen = self.log.resume(state["log_seq"], regenerated=not person)  # simulated: they come again, once
+        if unseen:  # a person's presses logged after the checkpoint (or recovered from the journal)
+            self.channel.put_events([unseen, *([[]] * (self.boards - 1))])
         torch.set_rng_state(state["rng"])
-        self._replay(state["played"], state["observation"])
+        if person:  # nothing a person did replays: the episodes restart on a new seed
+            self.restarts += 1
+            (self.env, self.td), self.played = self._seeded_env(), []
+            self.load_page_state(state)
+        else:
+            self.env, self.td = self._seeded_env()
+            self._replay(state["played"], state["observation"])
 
     def _replay(self, played: torch.Tensor, observed: torch.Tensor) -> None:
         """Stand where the saved run stood: its actions again on the freshly seeded task; if the task does not
         end where it did, its episodes restart on a new seed (counted in ``restarts``)."""
-        if self.restarts:  # the actions played since the last restart's seed
-            self.env.close()
-            self.env, self.td = self._seeded_env()
         td = self.td
         for action in played:
             _, td = self.env.step_and_maybe_reset(td.set(keys.ACTION, action.to(torch.int64)))
@@ -310,4 +328,5 @@ class GymTamer(GymTaskParts, FramesLearner):
 
     def close(self) -> None:
         self.env.close()
+        self.end_teaching("agent.frames", 2 * self.frames_total)
         self.log.close()

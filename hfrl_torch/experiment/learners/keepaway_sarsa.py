@@ -666,14 +666,6 @@ class SarsaKeepers(Learner):
     def hparam_metrics(self, final: dict[str, Any]) -> dict[str, float]:
         return {"hparam/episode_s_last": final["episode_s_mean"]}
 
-    @property
-    def stop_requested(self) -> bool:
-        return self.teaching is not None and self.teaching.finish_requested
-
-    def interrupted(self) -> None:
-        if self.teaching is not None:  # the browser trainer: the chunk's last steps are not paced
-            self.teaching.session.request_stop()
-
     def close(self) -> None:
         if self.teaching is not None:
             a = self.cfg.agent

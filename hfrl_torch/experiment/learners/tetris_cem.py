@@ -439,14 +439,6 @@ class CEMLearner(Learner):
     def hparam_metrics(self, final: dict[str, Any]) -> dict[str, float]:
         return {"hparam/eval_lines_mean": final["eval/mean_policy_lines_mean"]}
 
-    @property
-    def stop_requested(self) -> bool:
-        return self.teaching is not None and self.teaching.finish_requested
-
-    def interrupted(self) -> None:
-        if self.teaching is not None:
-            self.teaching.session.request_stop()
-
     def close(self) -> None:
         if self.teaching is not None:
             more = 2 * int(self.cfg.agent.iterations)
