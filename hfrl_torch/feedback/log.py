@@ -17,9 +17,12 @@ continues each session after the largest ``seq`` already in the file.
 **Duplicates.** A reader keeps one copy of each event and counts the others
 (:attr:`FeedbackLogContents.duplicates`; :func:`load_feedback_log` warns with the count): an event with an
 id seen before, or an event equal in every field but ``seq`` to one of an earlier segment (header) of the
-file: what a resumed run re-logged before ids existed (version 1), or re-logs with new ids if its loop
-does not rewind. Equal events within one segment are distinct presses (a replay can give two on one
-placement) and are all kept.
+file: what a resumed run re-logged before ids existed (version 1), or re-logs with new ids when its
+trainer gives again what it gave before the kill and the rewind's matching has ended. A person's press
+with an id (source ``human:...``) is never such a copy, since a resumed run cannot give it again: two Good
+presses on one placement are equal in every field but ``seq``, and the loop may log one before a kill and
+the journal's recovery the other in the next segment; both are kept. Equal events within one segment are
+distinct presses (a replay can give two on one placement) and are all kept.
 
 **Exactly once across a kill** (write-ahead). The loop logs events before it learns from them and stores
 :attr:`FeedbackLog.last_seq` (per session, the last event it handed to the learner) in each checkpoint. A
@@ -55,7 +58,7 @@ from typing import Any, Literal, overload
 
 from hfrl_torch.common.bounded_json import JSONBoundsError, loads_bounded
 from hfrl_torch.common.errors import UserError
-from hfrl_torch.feedback.events import EVENT_FIELDS, FeedbackEvent
+from hfrl_torch.feedback.events import EVENT_FIELDS, SOURCE_KINDS, FeedbackEvent, source_kind
 
 __all__ = [
     "MAX_LINE_BYTES",
@@ -70,6 +73,7 @@ __all__ = [
 ]
 
 SCHEMA = "hfrl_torch.feedback"
+HUMAN = SOURCE_KINDS.index("human")  # the source kind of a person's presses
 VERSION = 2
 READS = (1, 2)
 MAX_LINE_BYTES = 16384  # an event line is about 150 bytes
@@ -227,7 +231,8 @@ class _Reader:
                 self.duplicates += 1
                 return
             self._ids.add(ev.id)
-        if self._segment[content] <= self._earlier[content]:
+        pressed = ev.id is not None and source_kind(ev.source) == HUMAN  # never given again
+        if not pressed and self._segment[content] <= self._earlier[content]:
             self.duplicates += 1
             return
         self.events.append(ev)

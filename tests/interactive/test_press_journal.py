@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from hfrl_torch.feedback.log import FeedbackLog, load_feedback_log
+from hfrl_torch.feedback.log import FeedbackLog, load_feedback_log, read_feedback_log
 from hfrl_torch.interactive.journal import (
     JOURNAL_NAME,
     PressJournal,
@@ -86,6 +86,35 @@ def test_presses_acknowledged_while_paused_and_never_drained_are_logged_once_whe
     again = PressJournal(tmp_path / JOURNAL_NAME, FeedbackLog(tmp_path / "feedback.jsonl", "run"), 0.3, True)
     assert again.recovered == [] and len(load_feedback_log(tmp_path / "feedback.jsonl")) == 21
     assert again.write(200.0, 1.0, "human:browser", None) == 21  # numbering goes on after both files
+
+
+@pytest.mark.parametrize("keepaway", [True, False])
+def test_two_equal_presses_one_logged_before_the_kill_and_one_recovered_after_are_both_read_back(
+    tmp_path, keepaway
+):
+    """Two Good presses on one frame are equal in every field but their number. The loop logs the first; the
+    second is journaled when the run is killed, and the restarted run's recovery logs it under a new header.
+    A reader once dropped it as a resumed run's re-logged copy (one lost press in a study kill test)."""
+    session, _, trainer, clock = _teaching(tmp_path, keepaway)
+    _show(session, clock, 5.0, 0, 3)
+    session.apply(Feedback(value=1.0, id=0))
+    if keepaway:
+        trainer.poll(torch.tensor([5.5]))
+    else:
+        trainer.late(clock())
+    session.apply(Feedback(value=1.0, id=1))
+    # kill -9, then the same run again
+    journal = PressJournal(
+        tmp_path / JOURNAL_NAME, FeedbackLog(tmp_path / "feedback.jsonl", "run"), 0.3, trainer.discrete
+    )
+    assert len(journal.recovered) == 1
+    contents = read_feedback_log(tmp_path / "feedback.jsonl")
+    first, second = contents.events
+    assert (first.seq, second.seq) == (0, 1) and contents.duplicates == 0
+    assert {k: v for k, v in first.to_dict().items() if k != "seq"} == {
+        k: v for k, v in second.to_dict().items() if k != "seq"
+    }  # equal but for their numbers: what the reader must not take for a copy
+    journal.close()
 
 
 def test_a_press_the_journal_cannot_write_is_refused_and_not_counted(tmp_path):
