@@ -28,14 +28,16 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from hfrl_torch.common.checkpoint import LAST, save_checkpoint
 from hfrl_torch.common.logger import Logger, flatten_config, make_logger, markdown_table
-from hfrl_torch.interactive.live import LiveTeaching
+
+if TYPE_CHECKING:  # the page's server, only named in annotations
+    from hfrl_torch.interactive.live import LiveTeaching
 
 __all__ = ["Callback", "Interrupt", "Learner", "Point", "RunFiles", "learn"]
 

@@ -190,6 +190,8 @@ class BanditWeight(WeightSchedule):
             discount, prior_count = float(state["discount"]), float(state["prior_count"])
             prior_trust = float(state["prior_trust"])
             teaching_bonus = float(state.get("teaching_bonus", 0.0))  # checkpoints from before it: none
+            if not (math.isfinite(teaching_bonus) and teaching_bonus >= 0.0):
+                raise ValueError(f"teaching_bonus {teaching_bonus!r}")
         except (KeyError, TypeError, AttributeError, RuntimeError, ValueError) as e:
             raise CheckpointError(f"bad BanditWeight state ({e!r})") from None
         if arms.tolist() != self.arms.tolist():
@@ -212,6 +214,11 @@ class BanditWeight(WeightSchedule):
             f"w is chosen among {arms} by a bandit (fusion.weight=adaptive) that favours the weight whose "
             f"recent {episode}s went best, judged on {score}. It measures how much your teaching helps, "
             "not you."
+            + (
+                " While you teach, it keeps the highest weight unless the others do clearly better."
+                if self.teaching_bonus > 0
+                else ""
+            )
         )
 
     def __repr__(self) -> str:

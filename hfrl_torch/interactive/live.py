@@ -32,6 +32,11 @@ SUMMARY_NAME = "teaching_summary.json"  # the end-of-session summary the page sh
 REASONS = ("finished", "finished_by_you", "stopped", "failed")
 
 
+def taught_by_person(watched: str) -> str:
+    """Who gives a run's feedback when a person teaches from the page, for its TensorBoard text."""
+    return f"{SOURCE}: a PERSON teaching in the browser (trainer=interactive), watching {watched}"
+
+
 class BrowserQueueTrainer(QueueTrainer):
     """A person's presses off the page's queue as a ``QueueTrainer``, each logged under the run's browser
     session and filed by the subclass's :meth:`label` at the clock of the last ``give``; the presses left

@@ -51,7 +51,7 @@ from hfrl_torch.experiment.run import FramesLearner, Point, WallClockSaves
 from hfrl_torch.feedback.log import FeedbackLog
 from hfrl_torch.fusion.fusion import Fusion
 from hfrl_torch.fusion.transform import FeedbackFusion, FusionModule
-from hfrl_torch.interactive.live import LiveTeaching
+from hfrl_torch.interactive.live import LiveTeaching, taught_by_person
 from hfrl_torch.trainers.departure import Departure
 
 SAVE_EVERY_S = 10.0  # wall seconds between checkpoints
@@ -79,7 +79,7 @@ class CollectorLearner(FramesLearner):
     def who(self) -> str:
         """Who gives the feedback, for the run's TensorBoard text."""
         if self.teaching is not None:
-            return "human:browser: a PERSON teaching in the browser (trainer=interactive), watching board 0"
+            return taught_by_person("board 0")
         label = TRAINER_LABELS.get(self.cfg.trainer.name, self.cfg.trainer.name)
         leaves = self.feedback_transform.departure.describe() if self.feedback_transform is not None else ""
         return f"{label} (a simulated or replayed trainer, not a person), one per board; {leaves}"
@@ -161,7 +161,7 @@ class CollectorLearner(FramesLearner):
         if self.taught:
             self.human.load_state_dict(state["human"])
             self.feedback_transform.set_extra_state(state["feedback"])
-            person = self.cfg.trainer.name == "interactive"
+            person = self.teaching is not None
             unseen = self.log.resume(state["log_seq"], regenerated=not person)
             if unseen:  # a person's presses logged after the checkpoint (or recovered from the journal)
                 self.feedback_transform.put_events([unseen, *([[]] * (self.boards - 1))])

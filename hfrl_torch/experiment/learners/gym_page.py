@@ -43,7 +43,7 @@ class GymPage:
     boards: int
     frames_total: int
     fusion: Fusion
-    teaching: LiveTeaching | None = None
+    teaching: LiveTeaching | None
 
     @property
     def seconds_per_step(self) -> float:

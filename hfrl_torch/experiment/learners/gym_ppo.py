@@ -65,8 +65,8 @@ from hfrl_torch.experiment.factories import (
     make_gym_trainer,
 )
 from hfrl_torch.experiment.learners.deep_q import CollectorLearner
-from hfrl_torch.experiment.learners.gym_dqn import SCORE_KEY, GymTaskParts, greedy_returns, observation_net
-from hfrl_torch.experiment.learners.gym_page import GymPage
+from hfrl_torch.experiment.learners.gym_dqn import GymTaskParts, greedy_returns, observation_net
+from hfrl_torch.experiment.learners.gym_page import SCORE_KEY, GymPage
 from hfrl_torch.experiment.run import Point, WallClockSaves
 from hfrl_torch.fusion.fusion import Fusion
 from hfrl_torch.fusion.transform import FeedbackFusion

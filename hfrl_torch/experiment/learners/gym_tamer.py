@@ -2,12 +2,14 @@
 trainer=oracle trainer.reference=<module:callable or a gym run>``.
 
 H^ is Deep TAMER's network on the observation (``human=mlp``, the H^ that ``agent=dqn`` fuses), and the
-learner acts greedily on it (the fusion component's ``human_only`` rule): it learns only from the simulated
-trainer's feedback, never from the environment's reward. One learner plays ``agent.boards`` copies of the
-task, one simulated trainer judging each, on a simulated clock of ``domain.seconds_per_step`` per step. At
-every step, as in Tetris's TAMER (``tetris_games.py``): the feedback due on the clock comes out of the
-channel and H^ learns from it (credited over the recent decisions, with Deep TAMER's feedback replay), the
-learner chooses, the trainer judges the choice (its events go into the channel) and H^ remembers it. Once
+learner acts greedily on it (the fusion component's ``human_only`` rule): it learns only from its trainer's
+feedback, never from the environment's reward. The trainer is the simulated oracle against
+``trainer.reference``, the value proxy, a replayed log, or a person in the browser watching board 0
+(``trainer=interactive``, ``gym_page``). One learner plays ``agent.boards`` copies of the task, a
+simulated trainer judging each (a person: board 0), on a simulated clock of ``domain.seconds_per_step`` per
+step. At every step, as in Tetris's TAMER (``tetris_games.py``): the feedback due on the clock comes out of
+the channel and H^ learns from it (credited over the recent decisions, with Deep TAMER's feedback replay),
+the learner chooses, the trainer judges the choice (its events go into the channel) and H^ remembers it. Once
 the trainer leaves (``trainer.leave_after`` episodes of the learner, all boards together, or simulated
 minutes), H^ is frozen (no delivery, credit or replay; the events still waiting are dropped) and keeps
 acting. The points are the greedy policy's mean return on ``agent.eval_episodes`` fresh episodes, the same
@@ -18,7 +20,8 @@ checkpoint keeps H^ (its buffer included), the trainer, the channel and every ac
 run replays those actions on the freshly seeded task to stand where the run stood (CartPole-v1 on 8 boards
 replays about 3,000 frames per CPU second; 900 per wall second on this shared 2-core machine). A task that
 does not replay the same (e.g. a callable ignoring its seed) restarts its episodes instead, and the report
-says so.
+says so. A run a person taught keeps no actions and restarts its episodes on a new seed (nothing a person did
+can be replayed); the presses logged after its checkpoint are learned once.
 """
 
 from __future__ import annotations
@@ -47,16 +50,16 @@ from hfrl_torch.experiment.factories import (
     make_gym_trainer,
 )
 from hfrl_torch.experiment.learners.gym_dqn import (
-    SCORE_KEY,
     GymTaskParts,
     greedy_returns,
     observation,
     observation_net,
 )
-from hfrl_torch.experiment.learners.gym_page import GymPage
+from hfrl_torch.experiment.learners.gym_page import SCORE_KEY, GymPage
 from hfrl_torch.experiment.learners.tetris_games import TRAINER_LABELS
 from hfrl_torch.experiment.run import FramesLearner, Point
 from hfrl_torch.fusion.transform import FusionModule
+from hfrl_torch.interactive.live import taught_by_person
 
 __all__ = ["GymTamer"]
 
@@ -64,8 +67,7 @@ DECISION_KEYS = (keys.HUMAN_VALUES, keys.FUSED_VALUES, keys.FUSION_WEIGHT)  # th
 
 
 class GymTamer(GymTaskParts, GymPage, FramesLearner):
-    """Deep TAMER alone on ``agent.boards`` copies of a task, taught by the simulated oracle (module
-    docstring)."""
+    """Deep TAMER alone on ``agent.boards`` copies of a task, taught by its trainer (module docstring)."""
 
     domain = "gym"
     agent = "tamer"
@@ -148,7 +150,7 @@ class GymTamer(GymTaskParts, GymPage, FramesLearner):
         """Who gives the feedback, for the run's TensorBoard text."""
         t = self.cfg.trainer
         if self.teaching is not None:
-            return "human:browser: a PERSON teaching in the browser (trainer=interactive), watching board 0"
+            return taught_by_person("board 0")
         label = TRAINER_LABELS.get(t.name, t.name)
         judged = f" against trainer.reference={t.reference}" if t.name != "replay" else f" of {t.log}"
         return f"{label} (a simulated or replayed trainer, not a person){judged}, one per board"
@@ -189,7 +191,8 @@ class GymTamer(GymTaskParts, GymPage, FramesLearner):
             self.channel.put_events(self.trainer.give(td, action, now, self.games))
             self.human.record(td, action, now)
             self.trainer_seconds += (1 if self.teaching is not None else self.boards) * self.seconds_per_step
-        self.played.append(action.reshape(-1).to(torch.int32))
+        if self.teaching is None:  # a person's run is not replayed
+            self.played.append(action.reshape(-1).to(torch.int32))
         clock = torch.full((self.boards,), now, dtype=torch.float64)  # when the action is taken: the page's
         td, self.td = self.env.step_and_maybe_reset(td.exclude(*DECISION_KEYS).set(keys.CLOCK, clock))
         self.steps += 1
@@ -313,7 +316,7 @@ class GymTamer(GymTaskParts, GymPage, FramesLearner):
             f"Feedback:         {self.events} events of the "
             f"{TRAINER_LABELS.get(self.cfg.trainer.name, self.cfg.trainer.name)}{left}"
         )
-        if self.restarts:
+        if self.restarts and self.teaching is None:
             lines.append(
                 f"Resumed {self.restarts}x on a task that did not replay the same: episodes restarted"
             )

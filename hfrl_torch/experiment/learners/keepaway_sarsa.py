@@ -80,7 +80,7 @@ from hfrl_torch.feedback.log import FeedbackLog
 from hfrl_torch.fusion.fusion import changed_by_teaching
 from hfrl_torch.fusion.transform import FeedbackFusion, FusionModule
 from hfrl_torch.interactive.keepaway_live import BrowserKeeperTrainer, KeepawayWatcher, wait_for_teacher
-from hfrl_torch.interactive.live import LiveTeaching
+from hfrl_torch.interactive.live import LiveTeaching, taught_by_person
 
 STEPS_PER_CHUNK = 200  # env steps per chunk (each usually one simulator cycle)
 # one row per finished episode of a taught learner: its human effort and the weight it was played at
@@ -261,7 +261,7 @@ class SarsaKeepers(Learner):
     def who(self) -> str:
         t = self.cfg.trainer
         if self.person:
-            return "human:browser: a PERSON teaching in the browser (trainer=interactive), watching field 0"
+            return taught_by_person("field 0")
         if t.name == "replay":
             return f"replay: the events of {t.log}, given again on each field's clock"
         return (
@@ -272,7 +272,7 @@ class SarsaKeepers(Learner):
     def advance(self) -> list[Point]:
         points: list[Point] = []
         for _ in range(STEPS_PER_CHUNK):
-            if self.done or (self.teaching is not None and self.teaching.session.ending is not None):
+            if self.done or self.ending:
                 break  # (the browser trainer's run is finishing or stopping: the chunk ends now)
             self.step()
             points += self._close_points()
@@ -667,13 +667,10 @@ class SarsaKeepers(Learner):
         return {"hparam/episode_s_last": final["episode_s_mean"]}
 
     def close(self) -> None:
-        if self.teaching is not None:
-            a = self.cfg.agent
-            budget = (
-                ("agent.hours", 2 * float(a.hours))
-                if float(a.hours) > 0
-                else ("agent.episodes", 2 * a.episodes)
-            )
-            self.teaching.end(self.done, self.run_dir, *budget)
+        a = self.cfg.agent
+        budget = (
+            ("agent.hours", 2 * float(a.hours)) if float(a.hours) > 0 else ("agent.episodes", 2 * a.episodes)
+        )
+        self.end_teaching(*budget)
         if self.log is not None:
             self.log.close()

@@ -440,8 +440,6 @@ class CEMLearner(Learner):
         return {"hparam/eval_lines_mean": final["eval/mean_policy_lines_mean"]}
 
     def close(self) -> None:
-        if self.teaching is not None:
-            more = 2 * int(self.cfg.agent.iterations)
-            self.teaching.end(self.done, self.run_dir, "agent.iterations", more)
+        self.end_teaching("agent.iterations", 2 * int(self.cfg.agent.iterations))
         if self.log is not None:
             self.log.close()
