@@ -13,6 +13,10 @@ package). ``python train.py --cfg job`` shows them as written; ``--resolve`` sho
 - ``${adaptive_prior_count:<domain>}``: the strength, in episodes, of the adaptive weight's prior for H^:
   4 for Tetris, 20 for keepaway, whose episodes are a few seconds each and so carry less evidence
   (measured: docs/results.md, the adaptive weight).
+- ``${adaptive_arms:<domain>}``: the weights the adaptive weight's bandit chooses among: 0, 1 and 16 (no
+  H^, an equal say, H^ decides), and in keepaway also 256, where H^ decides outright: its H^ is scaled by
+  Q's spread, and at 16 Q still overrides it where its gaps are large (measured: docs/results.md, the
+  keepaway lifetime).
 - ``${run_dir:<resume>,<new>}``: where Hydra writes a run's files: a new run's own directory (``<new>``, or
   ``<new>_2``, ``<new>_3``... when a run started in the same second has it), or, when resuming,
   ``<resume>/resume-logs/<date>_<time>`` inside the resumed run.
@@ -23,10 +27,19 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from omegaconf import OmegaConf
+from omegaconf import ListConfig, OmegaConf
 
-RESOLVERS = ("implied_trainer", "decision_period", "keepaway_kernels", "adaptive_prior_count", "run_dir")
+RESOLVERS = (
+    "implied_trainer",
+    "decision_period",
+    "keepaway_kernels",
+    "adaptive_prior_count",
+    "adaptive_arms",
+    "run_dir",
+)
 PRIOR_EPISODES = {"tetris": 4.0, "keepaway": 20.0}
+ARMS = {"keepaway": (0.0, 1.0, 16.0, 256.0)}
+DEFAULT_ARMS = (0.0, 1.0, 16.0)
 
 
 def implied_trainer(fusion: str) -> str:
@@ -50,6 +63,12 @@ def adaptive_prior_count(domain: str) -> float:
     return PRIOR_EPISODES.get(domain, 4.0)
 
 
+def adaptive_arms(domain: str) -> ListConfig:
+    """The weights the adaptive weight's bandit chooses among in ``domain`` (a config list, so that
+    ``--resolve`` can write it in place)."""
+    return OmegaConf.create(list(ARMS.get(domain, DEFAULT_ARMS)))
+
+
 def run_dir(resume: str | None, new: str) -> str:
     """``new`` (or the first of ``new_2``, ``new_3``... that no run holds) for a new run;
     ``<resume>/resume-logs/<now>`` for a resumed one."""
@@ -69,6 +88,7 @@ def register() -> None:
         ("decision_period", decision_period),
         ("keepaway_kernels", keepaway_kernels),
         ("adaptive_prior_count", adaptive_prior_count),
+        ("adaptive_arms", adaptive_arms),
     ):
         if not OmegaConf.has_resolver(name):
             OmegaConf.register_new_resolver(name, fn)

@@ -12,6 +12,7 @@ from hfrl_torch.experiment.config import resume_config, validate_evaluate, valid
 from hfrl_torch.experiment.factories import make_keepaway_config, make_trainer
 from hfrl_torch.experiment.keepaway_evaluation import evaluate_keepaway, format_keepaway_summary
 from hfrl_torch.experiment.tetris_evaluation import evaluate_tetris
+from hfrl_torch.fusion.weights import make_weight
 
 
 def test_defaults_are_valid():
@@ -343,3 +344,16 @@ def test_a_run_saved_before_trainer_blind_existed_resumes_blind(tmp_path):
     oracle = OmegaConf.to_container(compose_config("train", "trainer=oracle"))
     with pytest.raises(ConfigError, match="cannot apply overrides"):  # a trainer that has no such setting
         resume_config(OmegaConf.create({}), tmp_path, {"config": oracle}, ["trainer.blind=true"])
+
+
+def test_the_adaptive_arms_follow_the_domain_and_reach_the_bandit(compose_train):
+    """Keepaway's bandit may also put H^ at 256 (H^ decides outright), Tetris's and a gym task's stop at 16;
+    an override still wins, and the run's bandit plays the composed arms."""
+    keepaway = compose_train("domain=keepaway", "fusion=linear", "fusion.weight=adaptive")
+    tetris = compose_train("agent=pg", "fusion=linear", "fusion.weight=adaptive")
+    assert list(keepaway.fusion.adaptive.arms) == [0.0, 1.0, 16.0, 256.0]
+    assert list(tetris.fusion.adaptive.arms) == [0.0, 1.0, 16.0]
+    custom = compose_train("domain=keepaway", "fusion=linear", "fusion.adaptive.arms=[0.0,4.0]")
+    assert list(custom.fusion.adaptive.arms) == [0.0, 4.0]
+    bandit = make_weight(keepaway, learners=2)
+    assert bandit.arms.tolist() == [0.0, 1.0, 16.0, 256.0] and bandit.value().tolist() == [256.0, 256.0]
