@@ -29,6 +29,8 @@ from pathlib import Path
 
 from omegaconf import ListConfig, OmegaConf
 
+from hfrl_torch.fusion.bandit import DEFAULT_ARMS
+
 RESOLVERS = (
     "implied_trainer",
     "decision_period",
@@ -38,8 +40,7 @@ RESOLVERS = (
     "run_dir",
 )
 PRIOR_EPISODES = {"tetris": 4.0, "keepaway": 20.0}
-ARMS = {"keepaway": (0.0, 1.0, 16.0, 256.0)}
-DEFAULT_ARMS = (0.0, 1.0, 16.0)
+ARMS = {"keepaway": (*DEFAULT_ARMS, 256.0)}
 
 
 def implied_trainer(fusion: str) -> str:

@@ -18,12 +18,6 @@ choices, so an H^ that is not followed while the trainer is there is taught on a
 looks worse than it would be. Once the trainer is gone that reason is gone too, and the prior is the pooled
 mean alone. Evidence decays, the prior does not, so an arm long unplayed returns to its prior and is tried
 again.
-
-The prior's raise is shrunk away as the highest weight's own evidence grows: after a few hundred keepaway
-episodes the bandit plays lower weights while the trainer still teaches. ``teaching_bonus`` (0: none) is a
-trust that does not shrink: while the trainer teaches, it is added to the highest weight's mean score
-itself, so a lower weight is played only when its episodes score that much better (log scale: 0.5 is a
-factor of e^0.5, 1.65, in lines or hold time).
 """
 
 from __future__ import annotations
@@ -67,7 +61,6 @@ class BanditWeight(WeightSchedule):
         prior_count: float = 4.0,
         prior_trust: float = 0.5,
         seed: int = 0,
-        teaching_bonus: float = 0.0,
     ) -> None:
         super().__init__(learners)
         grid = _weights(arms, "bandit arms")
@@ -79,11 +72,9 @@ class BanditWeight(WeightSchedule):
             raise ValueError(f"bandit prior_count must be > 0, got {prior_count!r}")
         if not (math.isfinite(float(prior_trust)) and float(prior_trust) >= 0.0):
             raise ValueError(f"bandit prior_trust must be >= 0, got {prior_trust!r}")
-        if not (math.isfinite(float(teaching_bonus)) and float(teaching_bonus) >= 0.0):
-            raise ValueError(f"bandit teaching_bonus must be >= 0, got {teaching_bonus!r}")
         self.arms = grid
         self.discount, self.prior_count = float(discount), float(prior_count)
-        self.prior_trust, self.teaching_bonus = float(prior_trust), float(teaching_bonus)
+        self.prior_trust = float(prior_trust)
         shape = (self.learners, grid.numel())
         self.count = torch.zeros(shape, dtype=torch.float64)  # discounted episodes per arm
         self.total = torch.zeros(shape, dtype=torch.float64)  # discounted sum of scores
@@ -112,7 +103,6 @@ class BanditWeight(WeightSchedule):
         prior = pooled + self.prior_trust * self.teaching.to(torch.float64).unsqueeze(-1) * top
         weight = self.count + self.prior_count
         mean = (self.total + self.prior_count * prior) / weight
-        mean = mean + self.teaching_bonus * self.teaching.to(torch.float64).unsqueeze(-1) * top
         return mean, variance / weight
 
     def taught(self, taught: Tensor, ended: Tensor | None = None) -> None:
@@ -170,7 +160,6 @@ class BanditWeight(WeightSchedule):
             "discount": self.discount,
             "prior_count": self.prior_count,
             "prior_trust": self.prior_trust,
-            "teaching_bonus": self.teaching_bonus,
             "count": self.count.clone(),
             "total": self.total.clone(),
             "square": self.square.clone(),
@@ -189,9 +178,6 @@ class BanditWeight(WeightSchedule):
             self.generator.set_state(state["generator"])
             discount, prior_count = float(state["discount"]), float(state["prior_count"])
             prior_trust = float(state["prior_trust"])
-            teaching_bonus = float(state.get("teaching_bonus", 0.0))  # checkpoints from before it: none
-            if not (math.isfinite(teaching_bonus) and teaching_bonus >= 0.0):
-                raise ValueError(f"teaching_bonus {teaching_bonus!r}")
         except (KeyError, TypeError, AttributeError, RuntimeError, ValueError) as e:
             raise CheckpointError(f"bad BanditWeight state ({e!r})") from None
         if arms.tolist() != self.arms.tolist():
@@ -206,7 +192,6 @@ class BanditWeight(WeightSchedule):
         self.count, self.total, self.square = (s.clone() for s in stats)
         self.arm, self.discount, self.prior_count = arm.clone(), discount, prior_count
         self.prior_trust, self.teaching = prior_trust, teaching.clone()
-        self.teaching_bonus = teaching_bonus
 
     def describe(self, score: str, episode: str) -> str:
         arms = ", ".join(f"{a:g}" for a in self.arms.tolist())
@@ -214,11 +199,6 @@ class BanditWeight(WeightSchedule):
             f"w is chosen among {arms} by a bandit (fusion.weight=adaptive) that favours the weight whose "
             f"recent {episode}s went best, judged on {score}. It measures how much your teaching helps, "
             "not you."
-            + (
-                " While you teach, it keeps the highest weight unless the others do clearly better."
-                if self.teaching_bonus > 0
-                else ""
-            )
         )
 
     def __repr__(self) -> str:

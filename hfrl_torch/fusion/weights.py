@@ -101,8 +101,6 @@ def _check_adaptive(cfg: DictConfig) -> None:
     require_float(cfg, "fusion.adaptive.paired_discount", 0.0, 0.999)
     require_float(cfg, "fusion.adaptive.prior_trust", 0.0)
     require_float(cfg, "fusion.adaptive.prior_count", 1e-6)
-    if OmegaConf.select(cfg, "fusion.adaptive.teaching_bonus") is not None:
-        require_float(cfg, "fusion.adaptive.teaching_bonus", 0.0)
     require_float(cfg, "fusion.adaptive.search_std", 1e-6)
     require_float(cfg, "fusion.initial_trust", 0.0)  # the search's first mean weight
 
@@ -129,7 +127,6 @@ def _bandit(cfg: DictConfig, learners: int) -> WeightSchedule:
         prior_count=float(a.prior_count),
         prior_trust=float(a.prior_trust),
         seed=component_seed(cfg.seed, "bandit"),
-        teaching_bonus=float(OmegaConf.select(a, "teaching_bonus", default=0.0)),  # saved runs: none
     )
 
 

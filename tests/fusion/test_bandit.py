@@ -202,33 +202,6 @@ def test_the_prior_trusts_h_only_while_the_trainer_teaches() -> None:
     assert restored.teaching.tolist() == [False]
 
 
-def test_the_teaching_bonus_keeps_h_deciding_while_taught_however_much_evidence() -> None:
-    """After 300 episodes at the highest weight, the prior's raise has shrunk away and equal evidence for
-    the other arms gets them played; the teaching bonus keeps H^ deciding while the trainer teaches, unless
-    the others score that much better, and is gone once the trainer has left."""
-
-    def after(bonus: float, lower: float) -> tuple[torch.Tensor, torch.Tensor]:
-        bandit = BanditWeight(1, seed=0, teaching_bonus=bonus)
-        for e in range(300):
-            bandit.arm[:] = 2 if e % 10 else e // 10 % 2  # mostly the highest weight, the others now and then
-            bandit.end_episode(performance=torch.tensor([10.0 if e % 10 else lower]))
-        taught = bandit.probabilities()[0]
-        bandit.taught(torch.tensor([False]))
-        restored = BanditWeight(1, seed=0, teaching_bonus=bonus)
-        restored.load_state_dict(bandit.state_dict())
-        assert restored.teaching_bonus == bonus
-        return taught, bandit.probabilities()[0]
-
-    taught, _ = after(0.0, 10.0)
-    assert float(taught[:2].sum()) > 0.3  # without the bonus, the lower weights are played while taught
-    taught, left = after(0.5, 10.0)
-    assert float(taught[2]) > 0.99 and float(left[:2].sum()) > 0.3
-    taught, _ = after(0.5, 40.0)  # the lower weights' episodes four times as long: far beyond e^0.5
-    assert float(taught[:2].sum()) > 0.5
-    with pytest.raises(ValueError, match="teaching_bonus must be >= 0"):
-        BanditWeight(1, teaching_bonus=-0.1)
-
-
 # ------------------------------------------------------- CE's paired comparison of weights
 
 
