@@ -136,6 +136,12 @@ class FeedbackChannel:
             np.array([source_kind(e.source) for _, e in given], dtype=np.int64),
         )
 
+    def put_board(self, board: int, events: list[FeedbackEvent]) -> None:
+        """Queue ``events`` of one board (e.g. a resumed run's presses on the board a person watches)."""
+        if not 0 <= board < self.boards:
+            raise ValueError(f"FeedbackChannel of {self.boards} boards got events for board {board}")
+        self.put_events([events if b == board else [] for b in range(self.boards)])
+
     def deliver(self, now: Tensor | float) -> TensorDict:
         """The events due by ``now`` (seconds, one clock per board [B] or one for all), oldest first, at most
         K per board, as a ``TensorDict`` [B] of ``keys.FEEDBACK``, ``FEEDBACK_TIME``, ``FEEDBACK_MASK`` and

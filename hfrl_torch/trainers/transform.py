@@ -21,7 +21,8 @@ from torchrl.envs.transforms import Transform
 
 from hfrl_torch import keys
 from hfrl_torch.feedback.channel import FeedbackChannel
-from hfrl_torch.trainers.base import Events, Trainer
+from hfrl_torch.feedback.events import FeedbackEvent
+from hfrl_torch.trainers.base import Trainer
 from hfrl_torch.trainers.departure import Departure
 
 __all__ = ["HumanFeedback"]
@@ -81,10 +82,10 @@ class HumanFeedback(Transform):
         ``keys.CLOCK``): what a learner books as the trainer's time."""
         return self.departure.present_one(episodes, float(clock.reshape(-1)[0]))
 
-    def put_events(self, events: Events) -> None:
-        """Queue events given outside the trainer's turn (a resumed run's presses it has not learned yet, one
-        list per board); they come out once due on the clock."""
-        self._state(len(events)).put_events(events)
+    def put_board(self, board: int, events: list[FeedbackEvent], boards: int) -> None:
+        """Queue events of one of the env's ``boards`` given outside the trainer's turn (a resumed run's
+        presses it has not learned yet); they come out once due on the clock."""
+        self._state(boards).put_board(board, events)
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         batch = tensordict.batch_size

@@ -129,3 +129,13 @@ def test_collect_queues_a_polling_trainers_events_and_counts_them_per_board():
     assert ch.collect(Polling(), clock).tolist() == [2, 1] and ch.pending == 3
     assert ch.collect(object(), clock).tolist() == [0, 0] and ch.pending == 3  # a trainer without poll
     assert ch.deliver(clock)[keys.FEEDBACK_MASK].sum(-1).tolist() == [2, 1]
+
+
+def test_put_board_queues_one_boards_events_and_refuses_a_board_it_lacks():
+    ch = FeedbackChannel(3)
+    ch.put_board(1, [FeedbackEvent(time=0.5, value=1.0, source="human:browser")])
+    ch.put_board(2, [])
+    out = ch.deliver(1.0)
+    assert out[keys.FEEDBACK_MASK].any(-1).tolist() == [False, True, False]
+    with pytest.raises(ValueError, match="board 3"):
+        ch.put_board(3, [])

@@ -161,10 +161,9 @@ class CollectorLearner(FramesLearner):
         if self.taught:
             self.human.load_state_dict(state["human"])
             self.feedback_transform.set_extra_state(state["feedback"])
-            person = self.teaching is not None
-            unseen = self.log.resume(state["log_seq"], regenerated=not person)
-            if unseen:  # a person's presses logged after the checkpoint (or recovered from the journal)
-                self.feedback_transform.put_events([unseen, *([[]] * (self.boards - 1))])
+            # a person's presses logged after the checkpoint (or recovered from the journal): learned now
+            unseen = self.log.resume(state["log_seq"], regenerated=self.teaching is None)
+            self.feedback_transform.put_board(0, unseen, self.boards)
 
     def fusion_payload(self) -> dict[str, Any] | None:
         """How ``evaluate.py`` fuses the saved H^ with the agent's values (Q, or the policy's logits; None:

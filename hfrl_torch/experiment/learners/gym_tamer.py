@@ -261,9 +261,9 @@ class GymTamer(GymTaskParts, GymPage, FramesLearner):
         self.trainer.load_state_dict(state["trainer"])
         self.channel.load_state_dict(state["channel"])
         person = self.teaching is not None
-        unseen = self.log.resume(state["log_seq"], regenerated=not person)  # simulated: they come again, once
-        if unseen:  # a person's presses logged after the checkpoint (or recovered from the journal)
-            self.channel.put_events([unseen, *([[]] * (self.boards - 1))])
+        # simulated: the events after the checkpoint come again, once; a person's presses logged after it (or
+        # recovered from the journal) are learned now
+        self.channel.put_board(0, self.log.resume(state["log_seq"], regenerated=not person))
         torch.set_rng_state(state["rng"])
         if person:  # nothing a person did replays: the episodes restart on a new seed
             self.restarts += 1

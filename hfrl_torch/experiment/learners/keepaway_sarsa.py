@@ -575,9 +575,8 @@ class SarsaKeepers(Learner):
                 # exactly once: a simulated trainer or a replay gives the events after the checkpoint again
                 # (matched in the log, not written twice); a person's presses logged after it are learned now
                 unseen = self.log.resume(play["log_seq"], regenerated=not self.person)
-                if unseen:
-                    self.channel.put_events([unseen] + [[] for _ in range(self.fields - 1)])
-                    self.episode_given[0] += sum(ev.value != 0 for ev in unseen)
+                self.channel.put_board(0, unseen)
+                self.episode_given[0] += sum(ev.value != 0 for ev in unseen)
         except (KeyError, TypeError, RuntimeError, ValueError, AttributeError) as e:
             raise CheckpointError(
                 f"checkpoint of {self.run_dir} does not continue this keepaway run's play ({e!r})"

@@ -405,8 +405,7 @@ class CEMLearner(Learner):
             self.clock = float(state["clock"])
             # exactly once: a simulated trainer or a replay gives the events after the checkpoint again (not
             # logged twice); a person's logged presses the learner never saw are learned now
-            person = self.teaching is not None
-            self.channel.put_events([self.log.resume(state["log_seq"], regenerated=not person)])
+            self.channel.put_board(0, self.log.resume(state["log_seq"], regenerated=self.teaching is None))
         except (KeyError, RuntimeError, TypeError, ValueError) as e:
             raise CheckpointError(f"checkpoint of {self.run_dir} is not this CE run's ({e!r})") from None
 
