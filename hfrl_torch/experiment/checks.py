@@ -723,7 +723,7 @@ def check_gym_dqn(cfg: DictConfig) -> None:
     replayed log or a person in the browser."""
     check_dqn(cfg, page=True)
     if cfg.trainer.name != "none":
-        check_gym_trainer(cfg, GYM_TRAINERS)
+        check_gym_trainer(cfg)
 
 
 def check_gym_tamer(cfg: DictConfig) -> None:
@@ -747,7 +747,7 @@ def check_gym_tamer(cfg: DictConfig) -> None:
             "trainer=none with agent=tamer: TAMER alone learns only from a trainer's feedback; "
             "choose trainer=oracle (with trainer.reference=...), value_proxy, replay or interactive"
         )
-    check_gym_trainer(cfg, GYM_TRAINERS)
+    check_gym_trainer(cfg)
     check_departure(cfg)
 
 
@@ -789,17 +789,17 @@ def check_gym_ppo(cfg: DictConfig) -> None:
                 "(or fusion=none)"
             )
         return
-    check_gym_trainer(cfg, GYM_TRAINERS)
+    check_gym_trainer(cfg)
 
 
-def check_gym_trainer(cfg: DictConfig, allowed: Sequence[str]) -> None:
-    """The trainer of a taught ``domain=gym`` learner (one of ``allowed``): the oracle against
-    ``trainer.reference``, its noise and timing, and Deep TAMER's H^ (``human=mlp``) that learns from it."""
+def check_gym_trainer(cfg: DictConfig) -> None:
+    """The trainer of a taught ``domain=gym`` learner (every learner takes each of ``GYM_TRAINERS``): the
+    oracle against ``trainer.reference``, its noise and timing, and Deep TAMER's H^ (``human=mlp``) that
+    learns from it."""
     trainer = cfg.trainer.name
-    if trainer not in allowed or trainer == "none":
-        raise ConfigError(
-            f"trainer={trainer} is not available for domain=gym yet; allowed: {', '.join(allowed)}"
-        )
+    taught = [t for t in GYM_TRAINERS if t != "none"]
+    if trainer not in taught:
+        raise ConfigError(f"trainer={trainer} is not available for domain=gym; allowed: {', '.join(taught)}")
     require_choice(cfg, "human.name", ("mlp",))
     check_mlp_human(cfg, placements=False)
     if trainer == "interactive":

@@ -34,14 +34,44 @@ def _key(e: FeedbackEvent) -> tuple:
     return (e.session.split("/")[-1], e.episode, e.step, e.value, round(e.time, 6))
 
 
-def test_a_replayed_gym_run_receives_exactly_the_logged_events(run_learner, tmp_path, one_thread) -> None:
-    first, done = run_learner(tmp_path / "oracle", *CARTPOLE, *TINY, *ORACLE, "trainer.frequency=0.5")
+SMALL = ("agent.boards=4", "agent.frames=256", "agent.eval_every=128", "agent.eval_episodes=2")
+LEARNERS = {
+    "dqn": (*CARTPOLE, *TINY),
+    "tamer": (
+        "domain=gym",
+        "domain.env_id=CartPole-v1",
+        "seed=3",
+        "agent=tamer",
+        *SMALL,
+        "human.replay_every=2",
+    ),
+    "ppo": (
+        "domain=gym",
+        "domain.env_id=CartPole-v1",
+        "seed=3",
+        "agent=ppo",
+        "fusion=linear",
+        "fusion.weight=1.0",
+        *SMALL,
+        "agent.steps_per_batch=8",
+        "agent.minibatch_size=16",
+        "human.replay_every=2",
+    ),
+}
+
+
+@pytest.mark.parametrize("learner", list(LEARNERS))
+def test_a_replayed_gym_run_receives_exactly_the_logged_events(run_learner, tmp_path, one_thread, learner):
+    """DQN, TAMER alone and PPO fused take a replayed log alike: the same events on the same steps, so H^
+    (and the policy) learn the same, point for point."""
+    task = LEARNERS[learner]
+    first, done = run_learner(tmp_path / "oracle", *task, *ORACLE, "trainer.frequency=0.5")
     log = tmp_path / "oracle" / "feedback.jsonl"
     recorded = load_feedback_log(log)
     assert len(recorded) > 50 and {e.source for e in recorded} == {"simulated:oracle"}
     assert {e.session.split("/")[-1] for e in recorded} == {f"board{b}" for b in range(4)}
 
-    second, again = run_learner(tmp_path / "replay", *CARTPOLE, *TINY, "trainer=replay", f"trainer.log={log}")
+    second, again = run_learner(tmp_path / "replay", *task, "trainer=replay", f"trainer.log={log}")
     replayed = load_feedback_log(tmp_path / "replay" / "feedback.jsonl")
     assert sorted(map(_key, replayed)) == sorted(map(_key, recorded))
     assert {e.source for e in replayed} == {"replay"}
@@ -53,43 +83,6 @@ def test_a_replayed_gym_run_receives_exactly_the_logged_events(run_learner, tmp_
         r["eval/greedy_return_mean"] for r in first.history
     ]
     assert again["feedback_events"] == done["feedback_events"]
-
-
-@pytest.mark.parametrize(
-    "learner",
-    [
-        ("agent=tamer", "agent.boards=4"),
-        (
-            "agent=ppo",
-            "fusion=linear",
-            "fusion.weight=1.0",
-            "agent.boards=4",
-            "agent.steps_per_batch=8",
-            "agent.minibatch_size=16",
-        ),
-    ],
-    ids=["tamer", "ppo"],
-)
-def test_tamer_and_ppo_replay_a_gym_runs_log_and_learn_the_same(run_learner, tmp_path, one_thread, learner):
-    """TAMER alone and PPO fused take a replayed log as DQN does: the same events on the same steps, so H^
-    (and the policy) learn the same, point for point."""
-    task = ("domain=gym", "domain.env_id=CartPole-v1", "seed=3", *learner)
-    tiny = ("agent.frames=256", "agent.eval_every=128", "agent.eval_episodes=2", "human.replay_every=2")
-    first, _ = run_learner(tmp_path / "oracle", *task, *tiny, *ORACLE, "trainer.frequency=0.5")
-    log = tmp_path / "oracle" / "feedback.jsonl"
-    recorded = load_feedback_log(log)
-    assert len(recorded) > 50
-
-    second, _ = run_learner(tmp_path / "replay", *task, *tiny, "trainer=replay", f"trainer.log={log}")
-    replayed = load_feedback_log(tmp_path / "replay" / "feedback.jsonl")
-    assert sorted(map(_key, replayed)) == sorted(map(_key, recorded))
-    assert {e.source for e in replayed} == {"replay"}
-    assert second.events == first.events > 0 and second.positive == first.positive
-    for a, b in zip(first.human.model.parameters(), second.human.model.parameters(), strict=True):
-        assert torch.equal(a, b)
-    assert [r["eval/greedy_return_mean"] for r in second.history] == [
-        r["eval/greedy_return_mean"] for r in first.history
-    ]
 
 
 def _log_lines() -> list[str]:

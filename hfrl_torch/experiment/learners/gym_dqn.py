@@ -162,7 +162,7 @@ class GymDQN(GymTaskParts, GymPage, DeepQLearner):
         )
 
     def watched_seconds(self, nxt: TensorDictBase) -> float:
-        return (1 if self.teaching is not None else self.boards) * self.seconds_per_step
+        return self.watched_boards * self.seconds_per_step
 
     def start(self, logger: Logger) -> None:
         super().start(logger)

@@ -50,6 +50,11 @@ class GymPage:
         """The simulated clock's time per env step (``domain.seconds_per_step``), which H^ credits on."""
         return float(self.cfg.domain.seconds_per_step)
 
+    @property
+    def watched_boards(self) -> int:
+        """The boards a trainer watches (its effort): a person board 0, a simulated trainer every board."""
+        return 1 if self.teaching is not None else self.boards
+
     def page_weight(self) -> Callable[[], float] | None:
         """What gives the weight on H^ the page shows with each frame (None: none, TAMER acting on H^
         alone)."""

@@ -191,8 +191,7 @@ class GymPPO(GymTaskParts, GymPage, CollectorLearner):
                 self.events += int(self.human.learn(nxt).sum())
                 self.positive += int((nxt[keys.FEEDBACK_MASK] & (nxt[keys.FEEDBACK] > 0)).sum())
                 if self.feedback_transform.present_at(self.episodes, step[keys.CLOCK]):
-                    watched = 1 if self.teaching is not None else self.boards  # a person watches board 0
-                    self.trainer_seconds += watched * self.seconds_per_step
+                    self.trainer_seconds += self.watched_boards * self.seconds_per_step
             done = nxt[keys.DONE].reshape(-1)
             for ret in nxt[keys.EPISODE_REWARD].reshape(-1)[done].tolist():
                 if self.taught:

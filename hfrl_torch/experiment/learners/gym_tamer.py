@@ -190,11 +190,13 @@ class GymTamer(GymTaskParts, GymPage, FramesLearner):
         if present:
             self.channel.put_events(self.trainer.give(td, action, now, self.games))
             self.human.record(td, action, now)
-            self.trainer_seconds += (1 if self.teaching is not None else self.boards) * self.seconds_per_step
+            self.trainer_seconds += self.watched_boards * self.seconds_per_step
         if self.teaching is None:  # a person's run is not replayed
             self.played.append(action.reshape(-1).to(torch.int32))
-        clock = torch.full((self.boards,), now, dtype=torch.float64)  # when the action is taken: the page's
-        td, self.td = self.env.step_and_maybe_reset(td.exclude(*DECISION_KEYS).set(keys.CLOCK, clock))
+        td = td.exclude(*DECISION_KEYS)
+        if self.watcher is not None:  # the page files a press by when the action it shows was taken
+            td.set(keys.CLOCK, torch.full((self.boards,), now, dtype=torch.float64))
+        td, self.td = self.env.step_and_maybe_reset(td)
         self.steps += 1
         nxt = td.get("next")
         done = nxt.get(keys.DONE).reshape(-1)
