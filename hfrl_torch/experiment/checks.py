@@ -18,6 +18,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from hfrl_torch.agents.cem.cem import NOISE_SCHEDULES
+from hfrl_torch.agents.cem.fused_rollout import CANDIDATE_RANKINGS
 from hfrl_torch.agents.sarsa.keepers import LEARNER_KERNELS
 from hfrl_torch.agents.sarsa.sarsa import trace_capacity
 from hfrl_torch.common.checkpoint import load_checkpoint
@@ -125,7 +126,7 @@ def check_cem(cfg: DictConfig) -> None:
         return
     check_human(cfg, "linear")
     require_int(cfg, "agent.watch_pieces", 1)
-    require_bool(cfg, "agent.alone_after_departure")
+    require_choice(cfg, "agent.rank_candidates", CANDIDATE_RANKINGS)
     if cfg.domain.features != "bt":
         raise ConfigError(
             f"domain.features={cfg.domain.features!r} with a trainer: CE + human feedback "
@@ -445,6 +446,8 @@ def check_sarsa(cfg: DictConfig) -> None:
         raise ConfigError("agent.hours=0 and agent.episodes=0 leave no budget; set one of them > 0")
     require_float(cfg, "agent.alpha", 1e-12)
     require_float(cfg, "agent.epsilon", 0.0, 1.0)
+    if "greedy_with_bandit" in cfg.agent:  # a saved run's config that predates the option explores
+        require_bool(cfg, "agent.greedy_with_bandit")
     lambda_ = require_float(cfg, "agent.lambda", 0.0, 1.0)
     gamma = require_float(cfg, "agent.gamma", 1e-9, 1.0)
     tilings = require_int(cfg, "agent.tilings", 1, 1024)

@@ -428,13 +428,15 @@ def make_fusion(
     """The one fusion component of a run of ``learner``: ``fusion``'s rules, the weight for what the learner
     gives it (``Learner.weight_evidence``) and the scale (``Learner.default_scaling`` unless
     ``fusion.normalise`` says), for ``learners`` learners (``option``: a learner's own rule instead, e.g.
-    TAMER's ``human_only``); its draws are the run's ``fusion`` stream."""
+    TAMER's ``human_only``); its draws are the run's ``fusion`` stream. With ``agent.greedy_with_bandit``
+    (the Sarsa keepers) a learner whose weight a bandit chooses acts greedily on the fused values."""
     seed = component_seed(cfg.seed, "fusion")
     if option is not None and option != cfg.fusion.name:
         return Fusion.from_option(option, ConstantWeight([0.0] * learners), seed=seed)
     schedule = make_weight(cfg, learners, learner.weight_evidence)
     scaling = fusion_scaling(cfg, learner.default_scaling)
-    return Fusion.from_option(cfg.fusion.name, schedule, scaling=scaling, seed=seed)
+    explore = schedule.kind != "bandit" or not cfg.agent.get("greedy_with_bandit", False)
+    return Fusion.from_option(cfg.fusion.name, schedule, scaling=scaling, seed=seed, explore=explore)
 
 
 # ---------------------------------------------------------------------------- keepaway

@@ -88,6 +88,9 @@ class Fusion:
     :param scaling: how R and H^ are put on one scale (see the module docstring).
     :param spread_rate: the step of the running mean of R's spread (``scaling="spread"``).
     :param seed: seed of control sharing's draws (one uniform per decision, whatever the weight).
+    :param explore: whether a learner whose choice weighs H^ explores around it (its epsilon); ``False``: it
+        chooses greedily on the fused values, as TAMER does (the Sarsa keepers under a bandit, whose weights
+        are the exploration).
     """
 
     def __init__(
@@ -99,6 +102,7 @@ class Fusion:
         scaling: str = "none",
         spread_rate: float = 0.01,
         seed: int = 0,
+        explore: bool = True,
     ) -> None:
         if decision not in DECISION_SCHEMES:
             raise ValueError(f"decision rule {decision!r} is invalid; allowed: {', '.join(DECISION_SCHEMES)}")
@@ -110,6 +114,7 @@ class Fusion:
             raise ValueError(f"spread_rate must be in (0, 1], got {spread_rate!r}")
         self.decision, self.reward_rule, self.schedule = decision, reward, schedule
         self.scaling, self.spread_rate = scaling, float(spread_rate)
+        self.explore = bool(explore)
         self.matches = MatchCounter(schedule.learners)
         self.q_spread = torch.full((schedule.learners,), MIN_SPREAD, dtype=torch.float64)
         self.generator = torch.Generator().manual_seed(int(seed))
@@ -130,8 +135,9 @@ class Fusion:
 
     @property
     def explores(self) -> bool:
-        """Whether the learner explores around the fused choice; TAMER's human-only choice is greedy."""
-        return self.decision != "human_only"
+        """Whether the learner explores around its choice: always on R alone, never for TAMER's human-only
+        choice, and around a choice that weighs H^ unless ``explore`` is off."""
+        return self.decision == "none" or (self.explore and self.decision != "human_only")
 
     @property
     def compiled_rule(self) -> int:
@@ -281,6 +287,10 @@ class Fusion:
         """The weights [K] whose test games the learner passes back as ``end_episode(compared=...)``, on the
         same games; None: the weight needs no comparison."""
         return self.schedule.compared_weights()
+
+    def weight_informed(self) -> bool:
+        """Whether the weight rests on the run's own evidence yet (not on a comparison's first arm alone)."""
+        return self.schedule.informed()
 
     @property
     def searches_weight(self) -> bool:

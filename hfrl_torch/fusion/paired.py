@@ -68,6 +68,9 @@ class PairedWeight(WeightSchedule):
     def compared_weights(self) -> Tensor:
         return self.arms.clone()
 
+    def informed(self) -> bool:
+        return not bool(self.scores.isnan().all())
+
     def end_episode(
         self,
         performance: float | Sequence[float] | Tensor | None = None,

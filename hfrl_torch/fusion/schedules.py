@@ -154,6 +154,11 @@ class WeightSchedule(ABC):
         ``end_episode(compared=...)``; None: this weight needs no such comparison."""
         return None
 
+    def informed(self) -> bool:
+        """Whether the weight rests on the run's own evidence yet (False: a comparison's first arm, played
+        before anything was compared); a weight set by a rule or by hand always does."""
+        return True
+
     @abstractmethod
     def describe(self, score: str, episode: str) -> str:
         """What sets the weight, in one or two plain sentences for the teaching page (``score``: what an

@@ -97,25 +97,56 @@ def test_annealed_weight_decays_by_its_factor_each_iteration(tmp_path):
     assert [r["fusion/weight"] for r in _curves(tmp_path)] == [1.0, 0.5, 0.25]
 
 
-@pytest.mark.parametrize("alone", [True, False])
-def test_once_the_trainer_has_left_the_candidates_are_ranked_on_r_alone(tmp_path, alone):
-    """agent.alone_after_departure: after the trainer's last iteration the population plays at weight 0
-    (R goes on improving past H^), while the mean policy is still tested at the fusion's weight."""
-    over = ["fusion=linear", "fusion.weight=1.0", "trainer=oracle", "trainer.leave_after=2"]
-    cfg = _cfg(*over, "agent.iterations=4", f"agent.alone_after_departure={alone}")
+@pytest.mark.parametrize(
+    ("ranking", "weight", "played"),
+    [
+        ("fused_while_teaching", "1.0", [None, None, 0.0, 0.0]),
+        ("fused_while_teaching", "adaptive", [0.0, None, 0.0, 0.0]),  # fused from the first comparison on
+        ("fused", "adaptive", [None] * 4),
+        ("alone", "1.0", [0.0] * 4),
+    ],
+)
+def test_candidates_are_ranked_fused_or_on_r_alone_as_agent_rank_candidates_says(
+    tmp_path, ranking, weight, played
+):
+    """agent.rank_candidates: the population plays at weight 0 (on R alone) before the weight rests on
+    evidence and after the trainer's last iteration (fused_while_teaching), never (fused: the thesis) or
+    always (alone), while the mean policy is still tested at the fusion's weight."""
+    over = ["fusion=linear", f"fusion.weight={weight}", "trainer=oracle", "trainer.leave_after=2"]
+    cfg = _cfg(*over, "agent.iterations=4", f"agent.rank_candidates={ranking}")
     learner = CEMLearner(cfg, tmp_path, None)
-    played, step = [], learner.cem.step
+    weights, step = [], learner.cem.step
 
     def recording_step():
-        played.append(learner.rollout.weight)
+        weights.append(learner.rollout.weight)
         return step()
 
     learner.cem.step = recording_step
     learn(learner, RunFiles(tmp_path, cfg))
-    assert played == ([None, None, 0.0, 0.0] if alone else [None] * 4)
+    assert weights == played
     assert learner.rollout.weight is None
-    assert [r["fusion/weight"] for r in _curves(tmp_path)] == [1.0] * 4
+    if weight == "1.0":
+        assert [r["fusion/weight"] for r in _curves(tmp_path)] == [1.0] * 4
+    else:  # the mean policy's first games play the comparison's first arm, before any evidence
+        assert _curves(tmp_path)[0]["fusion/weight"] == 1.0
     assert [r["feedback/trainer_present"] for r in _curves(tmp_path)] == [1.0, 1.0, 0.0, 0.0]
+
+
+def test_alone_ranking_searches_as_ce_alone(tmp_path):
+    """agent.rank_candidates=alone: CE's search is CE alone's, draw for draw (the trainer changes only what
+    the mean policy plays), so a bad trainer cannot set the search back."""
+    runs = {"alone": [], "taught": ["fusion=linear", "trainer=oracle", "trainer.consistency=0.3"]}
+    learners = {}
+    for name, over in runs.items():
+        (tmp_path / name).mkdir()
+        cfg = _cfg(*over, "agent.iterations=3", "agent.rank_candidates=alone")
+        learners[name] = CEMLearner(cfg, tmp_path / name, None)
+        learn(learners[name], RunFiles(tmp_path / name, cfg))
+    alone, taught = learners["alone"], learners["taught"]
+    assert torch.equal(alone.cem.mean, taught.cem.mean) and torch.equal(
+        alone.cem.variance, taught.cem.variance
+    )
+    assert sum(r["feedback/given"] for r in _curves(tmp_path / "taught")) > 0
 
 
 def _run(script: str, *args: str) -> subprocess.CompletedProcess:

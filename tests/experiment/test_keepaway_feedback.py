@@ -16,7 +16,8 @@ from hfrl_torch.agents.tamer.keeper_tamer import KeeperTamer
 from hfrl_torch.common.checkpoint import load_checkpoint
 from hfrl_torch.common.errors import ConfigError
 from hfrl_torch.envs.keepaway import TASKS, KeepawayConfig, KeepawayEnv
-from hfrl_torch.experiment.factories import make_keepaway_config
+from hfrl_torch.experiment.factories import make_fusion, make_keepaway_config
+from hfrl_torch.experiment.learners.keepaway_sarsa import SarsaKeepers
 from hfrl_torch.feedback.channel import FeedbackChannel
 from hfrl_torch.feedback.credit import PreviousStep
 from hfrl_torch.feedback.events import FeedbackEvent
@@ -193,6 +194,24 @@ def test_a_taught_run_learns_h_and_is_deterministic(tmp_path, compose_train, run
     assert one.fusion.weight().tolist() != [0.5, 0.5]  # eq. 4.4 ran at the episodes' ends
     human_only, _ = _tiny(compose_train, run_learner, tmp_path / "c", "human_only", hours=0.004)
     assert not human_only.fusion.explores and human_only.tamer.model.weight.abs().sum() > 0
+
+
+def test_keepers_whose_weight_a_bandit_chooses_act_greedily_on_the_fused_values(compose_train):
+    """agent.greedy_with_bandit: under the adaptive weight (a bandit over weights) the keepers choose
+    greedily, the bandit's weights being the exploration; under the thesis's trust factor, a fixed weight, or
+    when H^ only shapes the reward, they explore as the reference keepers do."""
+
+    def explores(*overrides: str) -> bool:
+        return make_fusion(_cfg(compose_train, *overrides), SarsaKeepers, 2).explores
+
+    assert not explores()  # fusion=linear, weight=adaptive: the default
+    assert not explores("fusion=exponential")
+    assert explores("agent.greedy_with_bandit=false")
+    assert explores("fusion.weight=trust") and explores("fusion.weight=4.0")
+    assert explores("fusion=reward_shaping", "fusion.weight=adaptive")  # the choice is on Q alone
+    assert not explores("fusion=human_only")  # TAMER's choice is greedy whatever the flag
+    with pytest.raises(ConfigError, match=r"agent\.greedy_with_bandit"):
+        _cfg(compose_train, "agent.greedy_with_bandit=sometimes")
 
 
 def test_config_checks_and_the_choices_the_config_implies(compose_train):

@@ -250,13 +250,14 @@ def test_the_learners_evidence_reaches_the_weight_through_the_fusion():
     """CE never touches its schedule: its comparison and its search arrive through ``Fusion.end_episode``."""
     paired = Fusion.from_option("linear", PairedWeight(1, [0.0, 0.25, 1.0], discount=0.0))
     assert paired.compared_weights().tolist() == [0.0, 0.25, 1.0] and not paired.searches_weight
+    assert paired.weight().tolist() == [1.0] and not paired.weight_informed()  # the first arm: no evidence
     games = torch.tensor([[[5.0, 5.0], [30.0, 40.0], [1.0, 2.0]]])  # [L, K, G]: the middle arm won
     paired.end_episode(performance=10.0, compared=games)
-    assert paired.weight().tolist() == [0.25]
+    assert paired.weight().tolist() == [0.25] and paired.weight_informed()
     paired.end_episode(performance=10.0)  # no comparison this time: the arm is kept
     assert paired.weight().tolist() == [0.25]
     searched = Fusion.from_option("linear", SearchedWeight(0.5))
-    assert searched.searches_weight and searched.compared_weights() is None
+    assert searched.searches_weight and searched.compared_weights() is None and searched.weight_informed()
     searched.end_episode(performance=10.0, searched=torch.tensor([1.75]))
     assert searched.weight().tolist() == [1.75]
     trust = Fusion.from_option("linear", TrustWeight.from_initial(0.5))

@@ -331,3 +331,14 @@ def test_match_count_goes_through_the_fusion_and_feeds_the_trust():
     fusion.eval()
     fusion.fuse(_decisions(r, h).set(keys.LEARNER, torch.tensor([0, 1, 1])))
     assert fusion.matches.compared.tolist() == [0, 0]  # evaluation counts nothing
+
+
+def test_a_learner_explores_around_its_choice_unless_the_fusion_says_not() -> None:
+    """``Fusion(explore=False)`` (the Sarsa keepers under a bandit): a choice that weighs H^ is greedy, as
+    TAMER's is; a choice on R alone still explores, and TAMER's human-only choice never does."""
+    weights = ConstantWeight([0.0, 1.0, 16.0])
+    assert Fusion("linear", "none", weights).explores
+    assert not Fusion("linear", "none", weights, explore=False).explores
+    assert not Fusion("control_sharing", "none", weights, explore=False).explores
+    assert Fusion("none", "reward_shaping", weights, explore=False).explores
+    assert not Fusion("human_only", "none", weights).explores

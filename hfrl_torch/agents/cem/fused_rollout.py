@@ -17,6 +17,9 @@ from hfrl_torch.envs.tetris.rules import TetrisRules
 from hfrl_torch.fusion.compiled import FusedGames, play_fused
 from hfrl_torch.fusion.fusion import Fusion
 
+# agent.rank_candidates: when CE's candidates play fused with H^ (conf/agent/cem.yaml says what each means)
+CANDIDATE_RANKINGS = ("fused_while_teaching", "fused", "alone")
+
 
 class FusedRollout:
     """A CE ``Rollout`` that fuses each candidate's R with ``human_weights`` through ``fusion``.

@@ -187,7 +187,9 @@ class CEMLearner(Learner):
             present = self.departure.present_one(t, self.clock)
             if present:  # the trainer's game
                 watched = self.watch_game(component_seed(self.cfg.seed, "watched_game", t), t)
-            if not present and self.cfg.agent.get("alone_after_departure", False):
+            ranking = self.cfg.agent.rank_candidates
+            taught = present and self.fusion.weight_informed()
+            if ranking == "alone" or (ranking == "fused_while_teaching" and not taught):
                 self.rollout.weight = 0.0  # the candidates on R alone: R goes on improving past H^
             if self.teaching is not None:  # the browser trainer: Ctrl-C ends the person's game and the chunk
                 if self.teaching.session.ending == "stopping":
