@@ -126,7 +126,8 @@ def check_cem(cfg: DictConfig) -> None:
         return
     check_human(cfg, "linear")
     require_int(cfg, "agent.watch_pieces", 1)
-    require_choice(cfg, "agent.rank_candidates", CANDIDATE_RANKINGS)
+    if "rank_candidates" in cfg.agent:  # a saved run's config that predates it has alone_after_departure
+        require_choice(cfg, "agent.rank_candidates", CANDIDATE_RANKINGS)
     if cfg.domain.features != "bt":
         raise ConfigError(
             f"domain.features={cfg.domain.features!r} with a trainer: CE + human feedback "

@@ -86,6 +86,8 @@ class CEMLearner(Learner):
         self.rules = make_rules(cfg)
         self.names = feature_names(feature_id(cfg.domain.features), self.rules.width)
         self.taught = cfg.trainer.name != "none"
+        old = "fused_while_teaching" if cfg.agent.get("alone_after_departure", False) else "fused"
+        self.ranking = str(cfg.agent.get("rank_candidates", old))  # a saved run's config may predate it
         self.teaching: LiveTeaching | None = None
         self.page: TetrisPage | None = None
         self.log: FeedbackLog | None = None
@@ -187,7 +189,7 @@ class CEMLearner(Learner):
             present = self.departure.present_one(t, self.clock)
             if present:  # the trainer's game
                 watched = self.watch_game(component_seed(self.cfg.seed, "watched_game", t), t)
-            ranking = self.cfg.agent.rank_candidates
+            ranking = self.ranking
             taught = present and self.fusion.weight_informed()
             if ranking == "alone" or (ranking == "fused_while_teaching" and not taught):
                 self.rollout.weight = 0.0  # the candidates on R alone: R goes on improving past H^
