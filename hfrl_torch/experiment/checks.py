@@ -126,8 +126,10 @@ def check_cem(cfg: DictConfig) -> None:
         return
     check_human(cfg, "linear")
     require_int(cfg, "agent.watch_pieces", 1)
-    if "rank_candidates" in cfg.agent:  # a saved run's config that predates it has alone_after_departure
+    if "rank_candidates" in cfg.agent:
         require_choice(cfg, "agent.rank_candidates", CANDIDATE_RANKINGS)
+    elif "alone_after_departure" in cfg.agent:  # a saved run's config from before rank_candidates
+        require_bool(cfg, "agent.alone_after_departure")
     if cfg.domain.features != "bt":
         raise ConfigError(
             f"domain.features={cfg.domain.features!r} with a trainer: CE + human feedback "

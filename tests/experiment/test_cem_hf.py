@@ -12,9 +12,12 @@ from pathlib import Path
 
 import pytest
 import torch
+from omegaconf import open_dict
 from script_runner import run_script
 
 from hfrl_torch.common.checkpoint import load_checkpoint
+from hfrl_torch.common.errors import ConfigError
+from hfrl_torch.experiment.checks import check_cem
 from hfrl_torch.experiment.cli import compose_config
 from hfrl_torch.experiment.learners.tetris_cem import CEMLearner
 from hfrl_torch.experiment.run import RunFiles, learn
@@ -132,12 +135,14 @@ def test_candidates_are_ranked_fused_or_on_r_alone_as_agent_rank_candidates_says
     assert [r["feedback/trainer_present"] for r in _curves(tmp_path)] == [1.0, 1.0, 0.0, 0.0]
 
 
-def test_alone_ranking_searches_as_ce_alone(tmp_path):
+@pytest.mark.parametrize("fusion", ["linear", "reward_shaping"])
+def test_alone_ranking_searches_as_ce_alone(tmp_path, fusion):
     """agent.rank_candidates=alone: CE's search is CE alone's, draw for draw (the trainer changes only what
-    the mean policy plays), so a bad trainer cannot set the search back."""
-    runs = {"alone": [], "taught": ["fusion=linear", "trainer=oracle", "trainer.consistency=0.3"]}
+    the mean policy plays), so a bad trainer cannot set the search back; with reward shaping the candidates
+    are ranked on lines alone."""
+    taught = ["fusion=" + fusion.split()[0], *fusion.split()[1:], "trainer=oracle", "trainer.consistency=0.3"]
     learners = {}
-    for name, over in runs.items():
+    for name, over in {"alone": [], "taught": taught}.items():
         (tmp_path / name).mkdir()
         cfg = _cfg(*over, "agent.iterations=3", "agent.rank_candidates=alone")
         learners[name] = CEMLearner(cfg, tmp_path / name, None)
@@ -147,6 +152,22 @@ def test_alone_ranking_searches_as_ce_alone(tmp_path):
         alone.cem.variance, taught.cem.variance
     )
     assert sum(r["feedback/given"] for r in _curves(tmp_path / "taught")) > 0
+
+
+@pytest.mark.parametrize(("alone", "ranking"), [(True, "fused_while_teaching"), (False, "fused")])
+def test_a_saved_config_from_before_rank_candidates_keeps_its_ranking(tmp_path, alone, ranking):
+    """A run saved with agent.alone_after_departure (before agent.rank_candidates) is checked and resumed with
+    the ranking it meant: fused while the trainer teaches, or always fused."""
+    cfg = _cfg("fusion=linear", "trainer=oracle", "agent.iterations=2")
+    with open_dict(cfg):
+        del cfg.agent["rank_candidates"]
+        cfg.agent.alone_after_departure = alone
+    check_cem(cfg)
+    assert CEMLearner(cfg, tmp_path, None).ranking == ranking
+    with open_dict(cfg):
+        cfg.agent.alone_after_departure = "sometimes"
+    with pytest.raises(ConfigError, match=r"agent\.alone_after_departure"):
+        check_cem(cfg)
 
 
 def _run(script: str, *args: str) -> subprocess.CompletedProcess:

@@ -8,6 +8,7 @@ import json
 
 import pytest
 import torch
+from omegaconf import open_dict
 from tensordict import TensorDict
 from torchrl.envs import TransformedEnv
 
@@ -212,6 +213,10 @@ def test_keepers_whose_weight_a_bandit_chooses_act_greedily_on_the_fused_values(
     assert not explores("fusion=human_only")  # TAMER's choice is greedy whatever the flag
     with pytest.raises(ConfigError, match=r"agent\.greedy_with_bandit"):
         _cfg(compose_train, "agent.greedy_with_bandit=sometimes")
+    saved = _cfg(compose_train)  # a run saved before the option explores, as it did then
+    with open_dict(saved):
+        del saved.agent["greedy_with_bandit"]
+    assert make_fusion(saved, SarsaKeepers, 2).explores
 
 
 def test_config_checks_and_the_choices_the_config_implies(compose_train):

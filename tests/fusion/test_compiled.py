@@ -127,6 +127,26 @@ def test_reward_shaping_ranks_on_lines_plus_beta_sum_h():
     assert rollout.last is not None
     torch.testing.assert_close(fitness, lines.double() + 0.25 * rollout.last.human_return)
     assert torch.equal(lines, rollout.last.lines) and capped.dtype == torch.bool
+    rollout.weight = 0.0  # the candidates on R alone (agent.rank_candidates): ranked on their lines alone
+    lines, _, _, fitness = rollout(_weights(6, 17, 6), torch.arange(6))
+    assert torch.equal(fitness, lines.double())
+
+
+def test_a_set_weight_overrides_the_searched_one():
+    """``FusedRollout.weight`` (CE's candidates on R alone) plays every candidate at that weight, whatever
+    weight on H^ it carries as its last entry (``fusion.weight=search``)."""
+    rollout = FusedRollout(RULES, "bt", "knox", _fusion("linear"), max_pieces=30, searches_weight=True)
+    rollout.human_weights = _weights(1, 38, 5)[0]
+    env_w, seeds = _weights(6, 17, 6), torch.arange(6)
+    searched = torch.cat([env_w, torch.full((6, 1), 3.0, dtype=torch.float64)], 1)
+    rollout.weight = 0.0
+    alone = rollout(searched, seeds)[0]
+    plain = play_fused(
+        RULES, "bt", "knox", env_w, rollout.human_weights, _fusion("none"), seeds, max_pieces=30
+    )
+    assert torch.equal(alone, plain.lines)
+    rollout.weight = None
+    assert not torch.equal(rollout(searched, seeds)[1], plain.pieces)  # the searched weight 3 plays H^
 
 
 @pytest.mark.parametrize(

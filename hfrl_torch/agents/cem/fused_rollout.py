@@ -55,7 +55,7 @@ class FusedRollout:
         self.fusion = fusion
         self.max_pieces = max_pieces
         self.human_weights: torch.Tensor | None = None
-        self.weight: float | None = None  # set: every game at this weight on H^ instead of the fusion's
+        self.weight: float | None = None  # set: every game and reward at this weight on H^, not the fusion's
         self.last: FusedGames | None = None
 
     def __call__(self, weights: torch.Tensor, seeds: torch.Tensor) -> tuple[torch.Tensor, ...]:
@@ -63,7 +63,8 @@ class FusedRollout:
             raise RuntimeError("FusedRollout.human_weights is unset: give it H^'s weights before playing")
         weight = self.weight
         if self.searches_weight:
-            weights, weight = weights[:, :-1], weights[:, -1].clamp(min=0.0)
+            weights, searched = weights[:, :-1], weights[:, -1].clamp(min=0.0)
+            weight = searched if weight is None else weight
         games = play_fused(
             self.rules,
             self.env_features,
@@ -80,5 +81,7 @@ class FusedRollout:
             return games.lines, games.pieces, games.capped
         lines = games.lines.to(torch.float64).unsqueeze(-1)
         w = self.fusion.weight(torch.zeros(lines.shape[0], dtype=torch.int64))
+        if self.weight is not None:
+            w = torch.full_like(w, self.weight)
         fitness = self.fusion.reward(lines, games.human_return.unsqueeze(-1), w).squeeze(-1)
         return games.lines, games.pieces, games.capped, fitness

@@ -19,8 +19,8 @@ each step of the loop, per field:
    H^ (``KeeperTamer``, on the Sarsa keepers' own tiles) learns from it, credited over the decisions of the
    last 500 ms whichever keepers made them;
 2. the deciding keeper's Q and H^ of every action go through the one fusion component, and Sarsa chooses
-   epsilon-greedily on the fused values (greedily where a bandit chooses the weight:
-   ``agent.greedy_with_bandit``), learning from its own Q of the action taken;
+   epsilon-greedily on the fused values (greedily where a bandit chooses the weight of a rule that weighs
+   H^: ``agent.greedy_with_bandit``), learning from its own Q of the action taken;
 3. the decision enters H^'s history, and the trainer may judge it: its event goes into the channel;
 4. the env's ``FeedbackFusion`` transform fuses the reward each keeper learns from (``reward_shaping``:
    r + w H^ of its previous decision; the environment's reward for every other scheme);
@@ -648,7 +648,7 @@ class SarsaKeepers(Learner):
         lines = [
             f"Done: after {final['hours']:.2f} simulated hours per learner ({a.learners} learners), "
             f"episodes last {final['episode_s_mean']:.2f} s (95% CI {low:.2f}..{high:.2f}; {window}, "
-            "exploring)"
+            f"{'exploring' if not self.taught or self.fusion.explores else 'greedy'})"
         ]
         if self.taught:
             who = TRAINER_LABELS.get(self.cfg.trainer.name, self.cfg.trainer.name)

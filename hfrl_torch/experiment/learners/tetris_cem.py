@@ -13,7 +13,9 @@ fusion, in four parts:
    every placement go through the fusion component, which chooses; the trainer judges the placement and its
    events go into the channel and the feedback log. One trainer watches one board, as a person would.
 2. **CE step.** Every candidate plays its games acting on its own R fused with H^ by the same component (its
-   compiled twin), so the elite are the weights that work best together with what the trainer taught.
+   compiled twin), so the elite are the weights that work best together with what the trainer taught; by
+   default only while the trainer teaches and the weight rests on evidence, on R alone otherwise
+   (``agent.rank_candidates``).
 3. **Test.** The fused mean policy plays ``agent.eval_games`` fresh games: their lines are the learning
    curve, and their placements' match count is the m of the trust factor.
 4. **Weight.** The fusion ends its episode: eq. 4.4 folds in (lines, m) for the trust factor; the annealed
@@ -189,9 +191,8 @@ class CEMLearner(Learner):
             present = self.departure.present_one(t, self.clock)
             if present:  # the trainer's game
                 watched = self.watch_game(component_seed(self.cfg.seed, "watched_game", t), t)
-            ranking = self.ranking
-            taught = present and self.fusion.weight_informed()
-            if ranking == "alone" or (ranking == "fused_while_teaching" and not taught):
+            fused_now = present and self.fusion.weight_informed()
+            if self.ranking == "alone" or (self.ranking == "fused_while_teaching" and not fused_now):
                 self.rollout.weight = 0.0  # the candidates on R alone: R goes on improving past H^
             if self.teaching is not None:  # the browser trainer: Ctrl-C ends the person's game and the chunk
                 if self.teaching.session.ending == "stopping":
