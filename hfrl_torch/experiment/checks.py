@@ -126,16 +126,23 @@ def check_cem(cfg: DictConfig) -> None:
         return
     check_human(cfg, "linear")
     require_int(cfg, "agent.watch_pieces", 1)
-    if "rank_candidates" in cfg.agent:
-        require_choice(cfg, "agent.rank_candidates", CANDIDATE_RANKINGS)
-    elif "alone_after_departure" in cfg.agent:  # a saved run's config from before rank_candidates
-        require_bool(cfg, "agent.alone_after_departure")
+    candidate_ranking(cfg)
     if cfg.domain.features != "bt":
         raise ConfigError(
             f"domain.features={cfg.domain.features!r} with a trainer: CE + human feedback "
             "fuses over the bt features (a prefix of H^'s knox set); allowed: bt"
         )
     check_tetris_trainer(cfg)
+
+
+def candidate_ranking(cfg: DictConfig) -> str:
+    """When CE + a trainer ranks its candidates fused with H^ (``agent.rank_candidates``, checked); a saved
+    run's config from before it says ``agent.alone_after_departure``: fused while teaching, or always."""
+    if "rank_candidates" in cfg.agent:
+        return require_choice(cfg, "agent.rank_candidates", CANDIDATE_RANKINGS)
+    if "alone_after_departure" in cfg.agent and require_bool(cfg, "agent.alone_after_departure"):
+        return "fused_while_teaching"
+    return "fused"
 
 
 def check_tamer(cfg: DictConfig) -> None:

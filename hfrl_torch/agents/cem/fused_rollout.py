@@ -80,8 +80,9 @@ class FusedRollout:
         if self.fusion.reward_rule == "none":
             return games.lines, games.pieces, games.capped
         lines = games.lines.to(torch.float64).unsqueeze(-1)
-        w = self.fusion.weight(torch.zeros(lines.shape[0], dtype=torch.int64))
-        if self.weight is not None:
-            w = torch.full_like(w, self.weight)
+        if self.weight is None:
+            w = self.fusion.weight(torch.zeros(lines.shape[0], dtype=torch.int64))
+        else:
+            w = torch.full((lines.shape[0],), float(self.weight), dtype=torch.float64)
         fitness = self.fusion.reward(lines, games.human_return.unsqueeze(-1), w).squeeze(-1)
         return games.lines, games.pieces, games.capped, fitness

@@ -50,7 +50,7 @@ from hfrl_torch.common.seeding import component_seed
 from hfrl_torch.common.stats import summarize
 from hfrl_torch.envs.tetris.env import TetrisEnv
 from hfrl_torch.envs.tetris.features import feature_id, feature_names
-from hfrl_torch.experiment.checks import check_cem
+from hfrl_torch.experiment.checks import candidate_ranking, check_cem
 from hfrl_torch.experiment.factories import (
     make_cem_config,
     make_feedback_wiring,
@@ -88,8 +88,7 @@ class CEMLearner(Learner):
         self.rules = make_rules(cfg)
         self.names = feature_names(feature_id(cfg.domain.features), self.rules.width)
         self.taught = cfg.trainer.name != "none"
-        old = "fused_while_teaching" if cfg.agent.get("alone_after_departure", False) else "fused"
-        self.ranking = str(cfg.agent.get("rank_candidates", old))  # a saved run's config may predate it
+        self.ranking = candidate_ranking(cfg)
         self.teaching: LiveTeaching | None = None
         self.page: TetrisPage | None = None
         self.log: FeedbackLog | None = None
